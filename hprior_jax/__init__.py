@@ -1,0 +1,4 @@
+"""hprior_jax: Hindsight PRIOR and PbRL baselines in JAX/Flax on MJX tasks."""
+from tasks import _xla_flags  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+__version__ = "0.1.0"

@@ -1,0 +1,20 @@
+"""One place for JAX process settings (compilation cache)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+DEFAULT_CACHE = Path(os.environ.get("HPRIOR_JAX_CACHE", Path.home() / ".cache" / "hprior_jax" / "xla"))
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
+    """Persistent XLA compilation cache: MJX + SAC programs take 10-60 s to compile on CPU,
+    and the cache makes the second run of the same shapes start in seconds."""
+    cache = Path(path) if path is not None else DEFAULT_CACHE
+    cache.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return cache

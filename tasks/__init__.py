@@ -1,0 +1,48 @@
+"""MJX task ports and their registry.
+
+    import tasks
+    task = tasks.make("cheetah_run")
+    state = task.reset(jax.random.key(0))
+    state = task.step(state, action)
+
+This package imports nothing from `hprior_jax`; `hprior_jax.envs` is its only client.
+"""
+from tasks import _xla_flags  # noqa: F401  (must run before jax is imported)
+
+from typing import Callable
+
+from tasks.base import Task, TaskState
+
+_REGISTRY: dict[str, Callable[[], Task]] = {}
+_CACHE: dict[str, Task] = {}
+
+
+def register(name: str, factory: Callable[[], Task]) -> None:
+    """Adds a task factory under `name` (e.g. "walker_walk")."""
+    if name in _REGISTRY:
+        raise ValueError(f"task {name!r} is already registered")
+    _REGISTRY[name] = factory
+
+
+def names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def make(name: str) -> Task:
+    """The task registered under `name`; built once per process (models are immutable)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(names())}")
+    if name not in _CACHE:
+        _CACHE[name] = _REGISTRY[name]()
+    return _CACHE[name]
+
+
+def _cheetah_run() -> Task:
+    from tasks.dm_control.cheetah import CheetahRun
+
+    return CheetahRun()
+
+
+register("cheetah_run", _cheetah_run)
+
+__all__ = ["Task", "TaskState", "make", "names", "register"]

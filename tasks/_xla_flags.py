@@ -1,0 +1,32 @@
+"""Sets the XLA flag MJX needs on CPU before jax is first imported.
+
+Without `--xla_cpu_use_fusion_emitters=false`, XLA's CPU fusion emitter makes the cost of
+MJX kinematics grow exponentially with kinematic-tree depth (MetaWorld's Sawyer scene:
+0.5-2 s per physics substep instead of ~0.3 ms). See shared/reference/mjx_cpu.md.
+This module must be imported before jax: `tasks/__init__.py` and `hprior_jax/__init__.py`
+import it first. Importing it after jax is already imported is too late for the flag to
+take effect, so we warn loudly in that case.
+"""
+import os
+import sys
+import warnings
+
+FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def ensure_xla_flags() -> None:
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_use_fusion_emitters" not in flags:
+        if "jax" in sys.modules and "jax._src.xla_bridge" in sys.modules:
+            warnings.warn(
+                "jax was imported before hprior_jax/tasks could set "
+                f"XLA_FLAGS={FLAG}; MJX on CPU may be up to 1000x slower. "
+                f"Export XLA_FLAGS={FLAG} before starting Python.",
+                stacklevel=3,
+            )
+        os.environ["XLA_FLAGS"] = (flags + " " + FLAG).strip()
+    # mujoco.mjx prints a line when the optional `warp` backend is missing; we never use it.
+    os.environ.setdefault("MUJOCO_GL", "disable")
+
+
+ensure_xla_flags()

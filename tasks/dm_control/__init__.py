@@ -1,0 +1,1 @@
+"""MJX ports of DM Control suite tasks."""

@@ -1,0 +1,100 @@
+"""Shared pieces of the DM Control ports: model loading, action scaling, stepping."""
+from __future__ import annotations
+
+import importlib
+
+import jax
+import jax.numpy as jnp
+import mujoco
+
+from tasks.base import Task, TaskState
+from tasks.physics import legacy_substeps, mjx, put_model
+
+
+def load_suite_model(domain: str) -> mujoco.MjModel:
+    """Compiles dm_control's own XML (and assets) for `domain` at run time.
+
+    We never copy dm_control's files: the installed package is the source of the model and
+    the reference the parity tests compare against."""
+    try:
+        module = importlib.import_module(f"dm_control.suite.{domain}")
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            f"dm_control is needed to build the {domain} task: pip install -e . "
+            "(it is a core dependency of hprior_jax)"
+        ) from e
+    xml, assets = module.get_model_and_assets()
+    return mujoco.MjModel.from_xml_string(xml, assets)
+
+
+class DMControlTask(Task):
+    """A DM Control task on MJX: `control.Environment` semantics with legacy stepping.
+
+    Subclasses provide `_observation(data)`, `_reward(data)` and `_initial_data(key)`.
+    """
+
+    domain = "dm_control"
+    has_success = False
+
+    def __init__(self, model: mujoco.MjModel, control_timestep: float, time_limit: float):
+        self.mj_model = model
+        self.model = put_model(model)
+        self.control_timestep = control_timestep
+        # dm_control: n_sub_steps = control_timestep / physics timestep (must divide evenly)
+        n_sub = control_timestep / model.opt.timestep
+        if abs(n_sub - round(n_sub)) > 1e-6:
+            raise ValueError("control timestep must be a multiple of the physics timestep")
+        self.n_sub_steps = int(round(n_sub))
+        # dm_control counts steps until time_limit / control_timestep (rounded up)
+        self.episode_length = int(round(time_limit / control_timestep))
+        self.action_size = model.nu
+        lo, hi = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+        self._ctrl_mid = jnp.asarray((hi + lo) / 2, jnp.float32)
+        self._ctrl_half = jnp.asarray((hi - lo) / 2, jnp.float32)
+
+    # -- subclass hooks -------------------------------------------------------------
+    def _observation(self, data: mjx.Data) -> jax.Array:
+        raise NotImplementedError
+
+    def _reward(self, data: mjx.Data) -> jax.Array:
+        raise NotImplementedError
+
+    def _initial_data(self, key: jax.Array) -> mjx.Data:
+        raise NotImplementedError
+
+    # -- contract ---------------------------------------------------------------------
+    def ctrl_from_action(self, action: jax.Array) -> jax.Array:
+        """Agent actions live in [-1, 1] (as with dmc2gym); map them to the actuator range."""
+        action = jnp.clip(action, -1.0, 1.0)
+        return self._ctrl_mid + self._ctrl_half * action
+
+    def reset(self, key: jax.Array) -> TaskState:
+        data = self._initial_data(key)
+        obs = self._observation(data)
+        zero = jnp.zeros((), jnp.float32)
+        return TaskState(data=data, obs=obs, true_reward=zero, success=zero,
+                         terminated=jnp.zeros((), bool))
+
+    def step(self, state: TaskState, action: jax.Array) -> TaskState:
+        data = state.data.replace(ctrl=self.ctrl_from_action(action))
+        data = legacy_substeps(self.model, data, self.n_sub_steps)
+        return state.replace(
+            data=data,
+            obs=self._observation(data),
+            true_reward=self._reward(data).astype(jnp.float32),
+        )
+
+    def settle(self, data: mjx.Data, n: int) -> mjx.Data:
+        """`n` zero-control substeps, as dm_control's `physics.step(nstep=n)` in resets."""
+        data = data.replace(ctrl=jnp.zeros_like(data.ctrl))
+        return legacy_substeps(self.model, data, n)
+
+    def forward(self, data: mjx.Data) -> mjx.Data:
+        return mjx.forward(self.model, data)
+
+    def sensor(self, data: mjx.Data, name: str) -> jax.Array:
+        sid = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_SENSOR, name)
+        if sid < 0:
+            raise KeyError(f"sensor {name!r} not in model")
+        adr, dim = self.mj_model.sensor_adr[sid], self.mj_model.sensor_dim[sid]
+        return data.sensordata[adr : adr + dim]

@@ -1,0 +1,1 @@
+"""MJX ports of MetaWorld v3 tasks."""

@@ -1,0 +1,13 @@
+"""Test configuration: XLA flag before jax, persistent compilation cache, small shapes."""
+import os
+
+os.environ["XLA_FLAGS"] = (
+    os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
+).strip()
+os.environ.setdefault("MUJOCO_GL", "disable")
+
+import jax  # noqa: E402
+
+from hprior_jax.setup_jax import enable_compilation_cache  # noqa: E402
+
+enable_compilation_cache()
