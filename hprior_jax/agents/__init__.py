@@ -1,0 +1,1 @@
+"""Agents: pure state, losses and updates."""

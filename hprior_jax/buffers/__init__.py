@@ -1,0 +1,1 @@
+"""Replay and preference buffers: pytree state plus pure ops."""
