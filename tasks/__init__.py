@@ -45,4 +45,34 @@ def _cheetah_run() -> Task:
 
 register("cheetah_run", _cheetah_run)
 
+
+# MetaWorld v3 ports (tasks/metaworld/); each factory builds the scene on first use.
+def _metaworld(module: str, cls: str) -> Callable[[], Task]:
+    def factory() -> Task:
+        import importlib
+
+        return getattr(importlib.import_module(f"tasks.metaworld.{module}"), cls)()
+
+    return factory
+
+
+for _name, _cls in (("drawer_open", "DrawerOpen"),):
+    register(_name, _metaworld(_name, _cls))
+
+
+def _walker_walk() -> Task:
+    from tasks.dm_control.walker import WalkerWalk
+
+    return WalkerWalk()
+
+
+def _quadruped_walk() -> Task:
+    from tasks.dm_control.quadruped import QuadrupedWalk
+
+    return QuadrupedWalk()
+
+
+register("walker_walk", _walker_walk)
+register("quadruped_walk", _quadruped_walk)
+
 __all__ = ["Task", "TaskState", "make", "names", "register"]

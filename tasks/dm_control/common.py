@@ -1,6 +1,7 @@
 """Shared pieces of the DM Control ports: model loading, action scaling, stepping."""
 from __future__ import annotations
 
+import copy
 import importlib
 
 import jax
@@ -39,6 +40,11 @@ class DMControlTask(Task):
     def __init__(self, model: mujoco.MjModel, control_timestep: float, time_limit: float):
         self.mj_model = model
         self.model = put_model(model)
+        # opt.disableflags is static in MJX, so reset's actuation-free forward needs its own
+        # model copy (built here: put_model inside a traced reset would leak tracers)
+        noact = copy.copy(model)
+        noact.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
+        self._model_noact = put_model(noact)
         self.control_timestep = control_timestep
         # dm_control: n_sub_steps = control_timestep / physics timestep (must divide evenly)
         n_sub = control_timestep / model.opt.timestep
@@ -76,7 +82,8 @@ class DMControlTask(Task):
                          terminated=jnp.zeros((), bool))
 
     def step(self, state: TaskState, action: jax.Array) -> TaskState:
-        data = state.data.replace(ctrl=self.ctrl_from_action(action))
+        # keep ctrl's dtype (float64 under jax_enable_x64, used for precision checks)
+        data = state.data.replace(ctrl=self.ctrl_from_action(action).astype(state.data.ctrl.dtype))
         data = legacy_substeps(self.model, data, self.n_sub_steps)
         return state.replace(
             data=data,
@@ -91,6 +98,13 @@ class DMControlTask(Task):
 
     def forward(self, data: mjx.Data) -> mjx.Data:
         return mjx.forward(self.model, data)
+
+    def reset_forward(self, data: mjx.Data) -> mjx.Data:
+        """`mj_forward` with actuation disabled, as dm_control's `reset_context` ends.
+
+        Matters for acceleration-stage sensors in the first observation (e.g. quadruped's
+        accelerometer and force/torque): dm_control computes them with zero actuator force."""
+        return mjx.forward(self._model_noact, data)
 
     def sensor(self, data: mjx.Data, name: str) -> jax.Array:
         sid = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_SENSOR, name)
