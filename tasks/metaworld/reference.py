@@ -1,0 +1,84 @@
+"""Builds the reference metaworld (C MuJoCo) environments the parity checks compare against.
+
+metaworld 3.0.0 writes 11-wide weld rows into `model.eq_data` (anchor 3, relpose pos 3,
+relpose quat 4, torquescale 1). MuJoCo 3.17 has mjNEQDATA = 12 (a 12th column that MJX
+and the weld constraint do not read), so the stock `reset_mocap_welds` raises on this pin.
+We patch it to write the same 11 values into the first 11 columns and leave the 12th as
+compiled: numerically that is exactly what metaworld intends.
+Imported only by tests and benchmarks (metaworld is not needed to *run* a port).
+"""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+METAWORLD_ENV_NAMES = {
+    "drawer_open": "drawer-open-v3",
+    "button_press": "button-press-v3",
+    "door_open": "door-open-v3",
+    "window_open": "window-open-v3",
+    "door_unlock": "door-unlock-v3",
+    "sweep_into": "sweep-into-v3",
+}
+
+# metaworld's weld row: anchor 0, relpose identity (quat -1 0 0 0), torquescale 5
+WELD_ROW = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0])
+
+_patched = False
+
+
+def _reset_mocap_welds(self) -> None:
+    if self.model.nmocap > 0 and self.model.eq_data is not None:
+        for i in range(self.model.eq_data.shape[0]):
+            if self.model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
+                self.model.eq_data[i, : WELD_ROW.size] = WELD_ROW
+
+
+def patch_metaworld() -> None:
+    """Makes metaworld 3.0.0's weld reset work on MuJoCo builds with wider eq_data."""
+    global _patched
+    if _patched:
+        return
+    from metaworld.sawyer_xyz_env import SawyerMocapBase
+
+    SawyerMocapBase.reset_mocap_welds = _reset_mocap_welds
+    _patched = True
+
+
+def metaworld_version() -> str:
+    from importlib.metadata import version
+
+    return version("metaworld")
+
+
+def make_env(task: str, seed: int = 0, partially_observable: bool = True):
+    """The metaworld v3 env for one of our task names, configured like BPref.
+
+    BPref: `_freeze_rand_vec = False` (new object/goal positions at every reset) and
+    `_set_task_called = True`; `seed` seeds the env's own generator, and we switch
+    `seeded_rand_vec` on so resets draw from it (not from global np.random)."""
+    patch_metaworld()
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+    env = ALL_V3_ENVIRONMENTS[METAWORLD_ENV_NAMES[task]]()
+    env._freeze_rand_vec = False
+    env._set_task_called = True
+    env.seeded_rand_vec = True
+    env._partially_observable = partially_observable
+    env.seed(seed)
+    return env
+
+
+def scripted_policy(task: str):
+    """metaworld's scripted policy for the task (metaworld.policies)."""
+    from metaworld import policies
+
+    names = {
+        "drawer_open": "SawyerDrawerOpenV3Policy",
+        "button_press": "SawyerButtonPressV3Policy",
+        "door_open": "SawyerDoorOpenV3Policy",
+        "window_open": "SawyerWindowOpenV3Policy",
+        "door_unlock": "SawyerDoorUnlockV3Policy",
+        "sweep_into": "SawyerSweepIntoV3Policy",
+    }
+    return getattr(policies, names[task])()

@@ -1,0 +1,417 @@
+"""Shared pieces of the MetaWorld v3 ports: the simplified Sawyer scene, mocap actions, the
+39-D observation, and the reset/step skeleton. Checked against metaworld 3.0.0.
+
+Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`; see
+shared/reference/mjx_cpu.md for the measurements behind each choice):
+  * The 7-DOF arm, pedestal and head are deleted. MetaWorld drives the *hand* with a mocap
+    weld and never reads the arm joints, so we re-root the `hand` subtree on a free joint
+    and keep metaworld's weld (solref 0.02 1, anchor 0, identity relpose, torquescale 5).
+    The arm's 14-deep chain is what made MJX kinematics slow; the hand alone is depth 3.
+  * The free hand gets mass 1 kg / inertia 2e-3 (the arm's reflected inertia has no exact
+    equivalent) and gravity compensation on the whole gripper, so at rest it sits on the
+    mocap target (metaworld's hand rests within 5 mm of it, held up by the arm).
+  * Visual-only geoms (contype = conaffinity = 0, all meshes), meshes, textures and materials
+    are deleted; every body keeps its compiled mass and inertia (set explicitly), so the
+    dynamics of what remains are unchanged.
+  * Every geom's contype/conaffinity is zeroed and each task lists explicit contact pairs
+    between the 4 gripper geoms (claws, pads) and the object parts the gripper touches.
+    Pair parameters are computed from the two geoms as MuJoCo mixes them for dynamic
+    contacts. MJX tests every candidate pair every step; this is the main speed lever.
+  * metaworld places the task object at reset by editing `model.body_pos` of one body
+    (drawer, door, box, window). We do the same per environment: the placement lives in
+    `info["placement"]` and `model_for(info)` swaps it into `body_pos` inside the jitted
+    step, so a vmapped batch holds different placements. (A mocap body would be cheaper
+    but MJX's kinematics does not carry a mocap body's pose to its child bodies.)
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from tasks.base import Task, TaskState
+from tasks.physics import mjx, put_model
+
+FRAME_SKIP = 5
+EPISODE_LENGTH = 500  # SawyerXYZEnv.max_path_length
+ACTION_SCALE = 1.0 / 100
+HAND_QUAT = np.array([1.0, 0.0, 1.0, 0.0]) / np.sqrt(2.0)  # metaworld sets mocap_quat (1,0,1,0)
+# metaworld's weld row (see SawyerMocapBase.reset_mocap_welds)
+WELD_ROW = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0])
+HAND_SPACE_LOW = np.array([-0.525, 0.348, -0.0525])
+HAND_SPACE_HIGH = np.array([0.525, 1.025, 0.7])
+GRIPPER_GEOMS = ("rightclaw_it", "leftclaw_it", "rightpad_geom", "leftpad_geom")
+HAND_MASS, HAND_INERTIA = 1.0, 2e-3
+RESET_HAND_STEPS = 50  # SawyerXYZEnv._reset_hand
+
+
+def metaworld_xml_path(name: str) -> str:
+    """Path of a scene XML inside the installed metaworld package (never copied here)."""
+    try:
+        import metaworld
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError("metaworld is needed to build MetaWorld tasks: pip install -e .") from e
+    return os.path.join(os.path.dirname(metaworld.__file__), "assets", "sawyer_xyz", name)
+
+
+def load_full_model(xml: str) -> mujoco.MjModel:
+    """metaworld's unchanged scene with metaworld's weld parameters (used for constants
+    that metaworld reads off the full arm model, and by the kinematics speed guard)."""
+    model = mujoco.MjModel.from_xml_path(metaworld_xml_path(xml))
+    for i in range(model.neq):
+        if model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
+            model.eq_data[i, : WELD_ROW.size] = WELD_ROW
+    return model
+
+
+# --------------------------------------------------------------------------------------
+# scene building
+
+
+def _mix_pair_params(model: mujoco.MjModel, g1: int, g2: int) -> dict:
+    """Contact parameters MuJoCo would use for a dynamic contact between g1 and g2
+    (mj_contactParam: max condim/friction/margin/gap, solmix-weighted solref/solimp)."""
+    s1, s2 = model.geom_solmix[g1], model.geom_solmix[g2]
+    mix = 0.5 if (s1 + s2) < mujoco.mjMINVAL else s1 / (s1 + s2)
+    fr = np.maximum(model.geom_friction[g1], model.geom_friction[g2])
+    solref1, solref2 = model.geom_solref[g1], model.geom_solref[g2]
+    if solref1[0] > 0 and solref2[0] > 0:
+        solref = mix * solref1 + (1 - mix) * solref2
+    else:  # direct (negative) solref: MuJoCo takes the elementwise min
+        solref = np.minimum(solref1, solref2)
+    return dict(
+        condim=int(max(model.geom_condim[g1], model.geom_condim[g2])),
+        friction=[fr[0], fr[0], fr[1], fr[2], fr[2]],
+        solref=list(solref),
+        solimp=list(mix * model.geom_solimp[g1] + (1 - mix) * model.geom_solimp[g2]),
+        margin=float(max(model.geom_margin[g1], model.geom_margin[g2])),
+        gap=float(max(model.geom_gap[g1], model.geom_gap[g2])),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    xml: str  # file under metaworld/assets/sawyer_xyz
+    hand_init_pos: tuple  # metaworld's init_config["hand_init_pos"]
+    # object geoms the gripper may touch: (body name, geom index within the body or None = all
+    # collision geoms of that body); each gets a pair with each of the 4 gripper geoms
+    object_geoms: tuple = ()
+    # extra explicit pairs between named object geoms (e.g. puck <-> table)
+    extra_pairs: tuple = ()
+    placed_body: str | None = None  # body metaworld moves at reset via model.body_pos
+    keep_geoms: tuple = ()  # visual geoms an observation reads (e.g. door "handle")
+
+
+def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
+    """The simplified MuJoCo model of a metaworld scene (see module docstring)."""
+    path = metaworld_xml_path(scene.xml)
+    spec = mujoco.MjSpec.from_file(path)
+    # name every geom so pairs can refer to it
+    for i, g in enumerate(spec.geoms):
+        if not g.name:
+            g.name = f"_geom{i}"
+    full = spec.compile()  # compiled reference: masses, inertias, contact parameters
+    # freeze compiled inertials so deleting visual geoms leaves masses as metaworld has them
+    for b in spec.bodies:
+        bid = mujoco.mj_name2id(full, mujoco.mjtObj.mjOBJ_BODY, b.name) if b.name else -1
+        if bid <= 0:  # world, or an unnamed wrapper body (inertial set below by name only)
+            continue
+        b.explicitinertial = True
+        b.mass = full.body_mass[bid]
+        b.ipos = full.body_ipos[bid]
+        b.iquat = full.body_iquat[bid]
+        b.inertia = full.body_inertia[bid]
+
+    # pairs: gripper geoms x object geoms
+    pair_names = []
+    for body_name, index in scene.object_geoms:
+        bid = full.body(body_name).id
+        gids = [g for g in range(full.ngeom) if full.geom_bodyid[g] == bid
+                and (full.geom_contype[g] or full.geom_conaffinity[g])]
+        if index is not None:
+            gids = [gids[i] for i in index]
+        for og in gids:
+            for hg in GRIPPER_GEOMS:
+                pair_names.append((hg, full.geom(og).name))
+    pair_names += list(scene.extra_pairs)
+
+    # re-root the hand: copy its subtree from a second spec onto a world frame, delete the arm
+    donor = mujoco.MjSpec.from_file(path)
+    for coll in (donor.meshes, donor.textures, donor.materials):  # else names clash on attach
+        for item in list(coll):
+            donor.delete(item)
+    for g in donor.geoms:
+        g.material = ""
+    spec.delete(spec.body("base"))
+    frame = spec.worldbody.add_frame(pos=list(scene.hand_init_pos), quat=list(HAND_QUAT))
+    hand = frame.attach_body(donor.body("hand"), "", "")  # (MuJoCo warns about the empty prefix)
+    hand.add_freejoint(name="hand_free")
+    hand.explicitinertial = True
+    hand.mass = HAND_MASS
+    hand.inertia = [HAND_INERTIA] * 3
+    hand.ipos = [0, 0, 0]
+    for b in [hand] + _descendants(hand):
+        b.gravcomp = 1.0  # the arm holds the gripper up in metaworld
+    for cam in list(spec.cameras):
+        spec.delete(cam)
+
+    used = {n for p in pair_names for n in p} | set(scene.keep_geoms)
+    for g in list(spec.geoms):
+        visual = g.type == mujoco.mjtGeom.mjGEOM_MESH or (g.contype == 0 and g.conaffinity == 0)
+        if g.name in used:
+            if g.type == mujoco.mjtGeom.mjGEOM_MESH:
+                raise ValueError(f"geom {g.name} is a mesh; pick a primitive collision geom")
+            continue
+        if visual or g.name == "floor":
+            spec.delete(g)
+    for g in spec.geoms:
+        g.contype, g.conaffinity = 0, 0  # only the explicit pairs below collide
+    for coll in (spec.meshes, spec.textures, spec.materials):
+        for item in list(coll):
+            spec.delete(item)
+    for g in spec.geoms:
+        g.material = ""
+
+    for n1, n2 in pair_names:
+        params = _mix_pair_params(full, full.geom(n1).id, full.geom(n2).id)
+        spec.add_pair(geomname1=n1, geomname2=n2, **params)
+
+    model = spec.compile()
+    for i in range(model.neq):
+        if model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
+            model.eq_data[i, : WELD_ROW.size] = WELD_ROW
+    return model, {"npairs": len(pair_names)}
+
+
+def _descendants(body) -> list:
+    out = []
+    for c in body.bodies:
+        out.append(c)
+        out.extend(_descendants(c))
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# the task skeleton
+
+
+class SawyerTask(Task):
+    """Reset/step/observation shared by the MetaWorld ports.
+
+    Subclasses set `scene`, the bounds, and implement `_place` (reset randomisation),
+    `_objects` (object pos/quat for the observation) and `_reward`."""
+
+    domain = "metaworld"
+    has_success = True
+    action_size = 4
+    obs_size = 39
+    episode_length = EPISODE_LENGTH
+
+    scene: SceneSpec
+    hand_low: tuple = (-0.5, 0.40, 0.05)  # the hand_low/hand_high of every task here
+    hand_high: tuple = (0.5, 1.0, 0.5)
+    obj_low: tuple = ()
+    obj_high: tuple = ()
+    goal_low: tuple | None = None  # goal_space; None -> hand bounds (metaworld default)
+    goal_high: tuple | None = None
+
+    def __init__(self, partially_observable: bool = True):
+        """partially_observable=True (default) zeroes the 3 goal slots of the observation.
+
+        That is metaworld v3's own default (`_partially_observable = True`) and what BPref
+        and every PbRL baseline the paper compares with used (spec §7.2, BPref issue #8);
+        pass False for metaworld's "goal observable" variant."""
+        self.partially_observable = partially_observable
+        self.mj_model, self.scene_info = build_scene(self.scene)
+        self.model = put_model(self.mj_model)
+        self.control_timestep = FRAME_SKIP * float(self.mj_model.opt.timestep)
+        m = self.mj_model
+        self._mocap_low = jnp.asarray(self.hand_low, jnp.float32)
+        self._mocap_high = jnp.asarray(self.hand_high, jnp.float32)
+        self._hand_mocap = int(m.body_mocapid[m.body("mocap").id])
+        self._placed_body = m.body(self.scene.placed_body).id if self.scene.placed_body else None
+        self._hand_qadr = int(m.jnt_qposadr[m.joint("hand_free").id])
+        self._hand_vadr = int(m.jnt_dofadr[m.joint("hand_free").id])
+        self._ids = {
+            "hand": m.body("hand").id, "rightclaw": m.body("rightclaw").id,
+            "leftclaw": m.body("leftclaw").id, "rightpad": m.body("rightpad").id,
+            "leftpad": m.body("leftpad").id,
+            "rightEE": m.site("rightEndEffector").id, "leftEE": m.site("leftEndEffector").id,
+        }
+        goal_low = self.goal_low if self.goal_low is not None else self.hand_low
+        goal_high = self.goal_high if self.goal_high is not None else self.hand_high
+        self._obs_low = np.concatenate([HAND_SPACE_LOW, [-1.0], np.full(14, -np.inf)] * 2
+                                       + [np.zeros(3) if partially_observable else goal_low])
+        self._obs_high = np.concatenate([HAND_SPACE_HIGH, [1.0], np.full(14, np.inf)] * 2
+                                        + [np.zeros(3) if partially_observable else goal_high])
+        self._settled = self._settle_hand()
+        # metaworld reads init_left/right_pad once at construction, with the *arm* at qpos0
+        full = load_full_model(self.scene.xml)
+        fd = mujoco.MjData(full)
+        mujoco.mj_forward(full, fd)
+        self.init_left_pad = jnp.asarray(fd.body("leftpad").xpos, jnp.float32)
+        self.init_right_pad = jnp.asarray(fd.body("rightpad").xpos, jnp.float32)
+
+    # -- construction-time constants ------------------------------------------------
+    def _settle_hand(self) -> dict:
+        """metaworld's `_reset_hand`: 50 control steps with the mocap at hand_init_pos and the
+        gripper open (ctrl -1, 1). It starts from the same state every reset (mj_resetData),
+        so the result is a constant: we compute it once here with C MuJoCo on our scene."""
+        m = self.mj_model
+        d = mujoco.MjData(m)
+        d.mocap_pos[self._hand_mocap] = self.scene.hand_init_pos
+        d.mocap_quat[self._hand_mocap] = HAND_QUAT
+        d.ctrl[:] = [-1.0, 1.0]
+        for _ in range(RESET_HAND_STEPS * FRAME_SKIP):
+            mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)
+        tcp = (d.site_xpos[self._ids["rightEE"]] + d.site_xpos[self._ids["leftEE"]]) / 2
+        return {"qpos": d.qpos.copy(), "qvel": d.qvel.copy(), "init_tcp": tcp.copy()}
+
+    # -- subclass hooks -----------------------------------------------------------------
+    def _place(self, key: jax.Array, data: mjx.Data) -> tuple[mjx.Data, dict]:
+        """Randomise the object like metaworld's reset_model; returns data (qpos/mocap
+        edited, not yet forwarded) and `info` constants for the episode."""
+        raise NotImplementedError
+
+    def _after_forward(self, data: mjx.Data, info: dict) -> dict:
+        """Episode constants metaworld reads off the placed scene (after mj_forward)."""
+        return info
+
+    def _objects(self, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        raise NotImplementedError
+
+    def _reward(self, obs, action, data, info) -> tuple[jax.Array, jax.Array]:
+        raise NotImplementedError
+
+    # -- helpers --------------------------------------------------------------------------
+    def sample_uniform(self, key, low, high):
+        low, high = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
+        return jax.random.uniform(key, low.shape, minval=low, maxval=high)
+
+    def tcp_center(self, data: mjx.Data) -> jax.Array:
+        return (data.site_xpos[self._ids["rightEE"]] + data.site_xpos[self._ids["leftEE"]]) / 2
+
+    def body_pos(self, data: mjx.Data, name: str) -> jax.Array:
+        return data.xpos[self.mj_model.body(name).id]
+
+    def site_pos(self, data: mjx.Data, name: str) -> jax.Array:
+        return data.site_xpos[self.mj_model.site(name).id]
+
+    def current_obs(self, data: mjx.Data) -> jax.Array:
+        """metaworld `_get_curr_obs_combined_no_goal` (18 values)."""
+        hand = data.xpos[self._ids["hand"]]
+        apart = jnp.linalg.norm(data.xpos[self._ids["rightclaw"]] - data.xpos[self._ids["leftclaw"]])
+        apart = jnp.clip(apart / 0.1, 0.0, 1.0)
+        pos, quat = self._objects(data)
+        n_obj = pos.shape[0] // 3
+        objs = jnp.concatenate([jnp.concatenate([pos[3 * i:3 * i + 3], quat[4 * i:4 * i + 4]])
+                                for i in range(n_obj)])
+        objs = jnp.pad(objs, (0, 14 - objs.shape[0]))
+        return jnp.concatenate([hand, apart[None], objs]).astype(jnp.float32)
+
+    def observe(self, curr, prev, goal) -> jax.Array:
+        """metaworld `_get_obs` followed by the clip to the observation space in `step`."""
+        goal = jnp.zeros(3) if self.partially_observable else goal
+        obs = jnp.concatenate([curr, prev, goal]).astype(jnp.float32)
+        return jnp.clip(obs, self._obs_low, self._obs_high)
+
+    def model_for(self, info: dict) -> mjx.Model:
+        """The model with this episode's object placement (metaworld edits model.body_pos)."""
+        if self._placed_body is None:
+            return self.model
+        body_pos = self.model.body_pos.at[self._placed_body].set(info["placement"])
+        return self.model.replace(body_pos=body_pos)
+
+    def kinematics(self, data: mjx.Data, info: dict) -> mjx.Data:
+        """Positions for observation and reward (metaworld calls mj_forward after stepping;
+        only the position stage is read)."""
+        return mjx.kinematics(self.model_for(info), data)
+
+    # -- contract ---------------------------------------------------------------------------
+    def reset(self, key: jax.Array) -> TaskState:
+        data = mjx.make_data(self.model)
+        data = data.replace(
+            qpos=jnp.asarray(self._settled["qpos"], jnp.float32),
+            qvel=jnp.asarray(self._settled["qvel"], jnp.float32),
+            mocap_pos=data.mocap_pos.at[self._hand_mocap].set(
+                jnp.asarray(self.scene.hand_init_pos, jnp.float32)),
+            mocap_quat=data.mocap_quat.at[self._hand_mocap].set(jnp.asarray(HAND_QUAT, jnp.float32)),
+            ctrl=jnp.asarray([-1.0, 1.0], jnp.float32),
+        )
+        info = {"init_tcp": jnp.asarray(self._settled["init_tcp"], jnp.float32)}
+        data, placed = self._place(key, data)
+        info.update(placed)
+        data = mjx.forward(self.model_for(info), data)
+        info = self._after_forward(data, info)
+        curr = self.current_obs(data)
+        info["prev_obs"] = curr  # metaworld v3 reset: obs[18:36] = obs[:18]
+        obs = self.observe(curr, curr, info["target_pos"])
+        zero = jnp.zeros((), jnp.float32)
+        return TaskState(data=data, obs=obs, true_reward=zero, success=zero,
+                         terminated=jnp.zeros((), bool), info=info)
+
+    def step(self, state: TaskState, action: jax.Array) -> TaskState:
+        action = jnp.clip(action, -1.0, 1.0)  # BPref's NormalizedBoxEnv clips to [-1, 1]
+        data = state.data
+        mocap = jnp.clip(data.mocap_pos[self._hand_mocap] + action[:3] * ACTION_SCALE,
+                         self._mocap_low, self._mocap_high)
+        data = data.replace(
+            mocap_pos=data.mocap_pos.at[self._hand_mocap].set(mocap),
+            ctrl=jnp.stack([action[3], -action[3]]),
+        )
+        model = self.model_for(state.info)
+        data = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, d: mjx.step(model, d), data)
+        data = mjx.kinematics(model, data)
+        curr = self.current_obs(data)
+        obs = self.observe(curr, state.info["prev_obs"], state.info["target_pos"])
+        reward, success = self._reward(obs, action, data, state.info)
+        info = dict(state.info, prev_obs=curr)
+        return TaskState(data=data, obs=obs, true_reward=reward.astype(jnp.float32),
+                         success=success.astype(jnp.float32),
+                         terminated=jnp.zeros((), bool), info=info)
+
+    # -- parity support ----------------------------------------------------------------------
+    def data_from_metaworld(self, env) -> mjx.Data:
+        """MJX data holding a metaworld env's current state: hand pose from metaworld's hand
+        body, fingers and object joints from its qpos (the arm joints are dropped)."""
+        md, mm = env.data, env.model
+        m = self.mj_model
+        qpos = np.zeros(m.nq)
+        qvel = np.zeros(m.nv)
+        qpos[self._hand_qadr:self._hand_qadr + 3] = md.body("hand").xpos
+        qpos[self._hand_qadr + 3:self._hand_qadr + 7] = md.body("hand").xquat
+        qvel[self._hand_vadr:self._hand_vadr + 3] = md.body("hand").cvel[3:]  # approx.
+        for j in range(m.njnt):
+            name = m.joint(j).name
+            if name == "hand_free":
+                continue
+            mj = mm.joint(name)
+            n = {0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])]
+            nvj = {0: 6, 1: 3, 2: 1, 3: 1}[int(m.jnt_type[j])]
+            qpos[m.jnt_qposadr[j]:m.jnt_qposadr[j] + n] = md.qpos[mj.qposadr[0]:mj.qposadr[0] + n]
+            qvel[m.jnt_dofadr[j]:m.jnt_dofadr[j] + nvj] = md.qvel[mj.dofadr[0]:mj.dofadr[0] + nvj]
+        data = mjx.make_data(self.model)
+        mocap_pos = np.array(data.mocap_pos)
+        mocap_quat = np.array(data.mocap_quat)
+        mocap_pos[self._hand_mocap] = md.mocap_pos[0]
+        mocap_quat[self._hand_mocap] = md.mocap_quat[0] / np.linalg.norm(md.mocap_quat[0])
+        return data.replace(qpos=jnp.asarray(qpos, jnp.float32),
+                            qvel=jnp.asarray(qvel, jnp.float32),
+                            mocap_pos=jnp.asarray(mocap_pos, jnp.float32),
+                            mocap_quat=jnp.asarray(mocap_quat, jnp.float32),
+                            ctrl=jnp.asarray(md.ctrl, jnp.float32))
+
+    def info_from_metaworld(self, env) -> dict:
+        """Episode constants of a metaworld env (after its reset) in this port's `info` form."""
+        info = {"init_tcp": np.asarray(env.init_tcp), **self._task_info_from_metaworld(env)}
+        if self._placed_body is not None:
+            info["placement"] = np.asarray(env.model.body(self.scene.placed_body).pos)
+        return info
+
+    def _task_info_from_metaworld(self, env) -> dict:
+        raise NotImplementedError
+
