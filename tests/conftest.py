@@ -11,3 +11,7 @@ import jax  # noqa: E402
 from hprior_jax.setup_jax import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
+
+from tests.toy_task import ensure_registered  # noqa: E402
+
+ensure_registered()

@@ -1,0 +1,80 @@
+"""Replay buffer as a pytree plus pure ops (BPref `replay_buffer.py`).
+
+Capacity defaults to the number of training steps, so the buffer never wraps (as BPref);
+it is a ring all the same. `true_reward` is stored for the scripted teacher and for
+diagnostics only: `sample` never returns it.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hprior_jax.agents.sac import Batch
+
+
+@struct.dataclass
+class ReplayState:
+    obs: jax.Array  # [C, obs]
+    action: jax.Array  # [C, act]
+    reward: jax.Array  # [C] the reward the agent trains on (true for SAC, learned for PbRL)
+    next_obs: jax.Array  # [C, obs]
+    not_done: jax.Array  # [C] 0 only at true terminations (BPref not_done_no_max)
+    true_reward: jax.Array  # [C] teacher/diagnostics only
+    index: jax.Array  # int32[] next write position
+    size: jax.Array  # int32[] number of valid transitions (<= C)
+
+    @property
+    def capacity(self) -> int:
+        return self.reward.shape[-1]
+
+
+def init(capacity: int, obs_size: int, action_size: int) -> ReplayState:
+    f = jnp.float32
+    return ReplayState(
+        obs=jnp.zeros((capacity, obs_size), f), action=jnp.zeros((capacity, action_size), f),
+        reward=jnp.zeros((capacity,), f), next_obs=jnp.zeros((capacity, obs_size), f),
+        not_done=jnp.zeros((capacity,), f), true_reward=jnp.zeros((capacity,), f),
+        index=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32))
+
+
+def add(buf: ReplayState, obs, action, reward, next_obs, not_done, true_reward) -> ReplayState:
+    """Adds one transition (unbatched leaves)."""
+    i = buf.index
+    cap = buf.capacity
+    return buf.replace(
+        obs=buf.obs.at[i].set(obs), action=buf.action.at[i].set(action),
+        reward=buf.reward.at[i].set(reward), next_obs=buf.next_obs.at[i].set(next_obs),
+        not_done=buf.not_done.at[i].set(not_done), true_reward=buf.true_reward.at[i].set(true_reward),
+        index=(i + 1) % cap, size=jnp.minimum(buf.size + 1, cap))
+
+
+def sample(buf: ReplayState, key: jax.Array, batch_size: int) -> Batch:
+    """Uniform with replacement over the valid transitions."""
+    idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
+    return Batch(obs=buf.obs[idx], action=buf.action[idx], reward=buf.reward[idx],
+                 next_obs=buf.next_obs[idx], not_done=buf.not_done[idx])
+
+
+def grow(buf: ReplayState, capacity: int) -> ReplayState:
+    """The same buffer with room for `capacity` transitions (used when a resumed run is
+    extended: BPref's buffer holds every step, so it must grow with the budget). A buffer
+    that has wrapped around keeps its oldest-first order only if `index == 0`; callers check
+    that on the host (`has_wrapped`)."""
+    extra = capacity - buf.capacity
+    if extra < 0:
+        raise ValueError(f"cannot shrink a replay buffer from {buf.capacity} to {capacity}")
+    if extra == 0:
+        return buf
+    pad = lambda x: jnp.concatenate([x, jnp.zeros((extra,) + x.shape[1:], x.dtype)])
+    index = jnp.where(buf.size == buf.capacity, buf.capacity, buf.index).astype(jnp.int32)
+    return buf.replace(obs=pad(buf.obs), action=pad(buf.action), reward=pad(buf.reward),
+                       next_obs=pad(buf.next_obs), not_done=pad(buf.not_done),
+                       true_reward=pad(buf.true_reward), index=index)
+
+
+def has_wrapped(buf: ReplayState) -> bool:
+    """Host-side: True if a ring write has overwritten old transitions (any seed)."""
+    import numpy as np
+
+    return bool(np.any((np.asarray(buf.size) == buf.capacity) & (np.asarray(buf.index) != 0)))

@@ -1,0 +1,52 @@
+"""Whole-RunState checkpoints with orbax (host side only).
+
+Keys are raw uint32 arrays, so the state restores bit-exactly and resuming continues the
+same random streams as an uninterrupted run."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import orbax.checkpoint as ocp
+
+
+def _with_path(tree):
+    return jax.tree_util.tree_flatten_with_path(tree)[0]
+
+
+def _name(path) -> str:
+    return jax.tree_util.keystr(path)
+
+
+def _flat(tree) -> dict:
+    """{path: leaf} without zero-size leaves (orbax refuses to write them; e.g. MJX's empty
+    `act` for models without actuator activations). Restore takes those from `like`."""
+    return {_name(p): x for p, x in _with_path(tree) if x.size}
+
+
+class Checkpointer:
+    def __init__(self, directory: Path, max_to_keep: int = 2):
+        self.directory = Path(directory).absolute()
+        self._manager = ocp.CheckpointManager(
+            self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep,
+                                                                 create=True))
+
+    def save(self, step: int, state) -> None:
+        self._manager.save(step, args=ocp.args.StandardSave(_flat(state)))
+        self._manager.wait_until_finished()
+
+    def latest_step(self) -> int | None:
+        return self._manager.latest_step()
+
+    def restore(self, like, step: int | None = None):
+        """Restores into the structure, shapes and dtypes of `like` (a RunState)."""
+        step = self.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint in {self.directory}")
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _flat(like))
+        flat = self._manager.restore(step, args=ocp.args.StandardRestore(abstract))
+        leaves = [flat.get(_name(path), leaf) for path, leaf in _with_path(like)]
+        return step, jax.tree.unflatten(jax.tree.structure(like), leaves)
+
+    def close(self) -> None:
+        self._manager.close()

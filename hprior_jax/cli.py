@@ -1,0 +1,90 @@
+"""`hprior` command line: parse, then call into the library (no JAX logic here).
+
+    hprior train --task cheetah_run --algo sac --preset smoke
+    hprior train --task cheetah_run --seeds 12345 23456 --steps 100000 --sac.lr 3e-4
+    hprior train --resume runs/cheetah_run_sac_20261122-101500
+    hprior tasks
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from tasks import _xla_flags  # noqa: F401  (before anything imports jax)
+
+USAGE = """usage: hprior COMMAND [ARGS]
+
+commands:
+  train    train an agent (hprior train --help for every option)
+  tasks    list the registered tasks
+"""
+
+
+def _train(argv: list[str]) -> int:
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--task", default="cheetah_run")
+    pre.add_argument("--algo", default="sac")
+    pre.add_argument("--preset", default="paper")
+    pre.add_argument("--resume", default=None)
+    pre.add_argument("--steps", type=int, default=None)
+    pre.add_argument("--no-progress", action="store_true")
+    known, rest = pre.parse_known_args(argv)
+
+    from hprior_jax.setup_jax import enable_compilation_cache
+    from hprior_jax import train
+
+    if known.resume:
+        if rest:
+            raise SystemExit(f"--resume takes only --steps to extend a run; got {rest}")
+        run_dir = known.resume
+        cfg, saved_capacity = train.load_run_config(run_dir), None
+        if known.steps is not None and known.steps != cfg.steps:
+            cfg, saved_capacity = train.extend_run(run_dir, known.steps)
+        resume = True
+    else:
+        import tyro
+
+        from hprior_jax import presets
+
+        default = presets.train_preset(known.task, known.algo, known.preset)
+        if "-h" not in rest and "--help" not in rest:
+            rest = [a for a in argv if a != "--no-progress"]
+        cfg = tyro.cli(train.TrainConfig, default=default, args=rest,
+                       prog="hprior train", description="Train an agent on an MJX task.")
+        run_dir = train.prepare_run_dir(cfg)
+        resume, saved_capacity = False, None
+    enable_compilation_cache()
+    print(f"run directory: {run_dir}", flush=True)
+    train.run(cfg, run_dir, resume=resume, progress=not known.no_progress,
+              saved_capacity=saved_capacity)
+    print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
+          "tb/ (TensorBoard), checkpoints/", flush=True)
+    return 0
+
+
+def _tasks(argv: list[str]) -> int:
+    from hprior_jax.envs import task_names
+
+    print("\n".join(task_names()))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        return 0 if argv else 2
+    command, rest = argv[0], argv[1:]
+    commands = {"train": _train, "tasks": _tasks}
+    if command not in commands:
+        print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
+        return 2
+    try:
+        return commands[command](rest)
+    except (ValueError, FileExistsError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,93 @@
+"""Batched environments over the `tasks` registry: the only importer of `tasks`.
+
+Episodes are synchronous: every task here ends only at its time limit (DM Control and
+MetaWorld never terminate early), all environments start together, so every environment is
+at the same step `t` of its episode. The caller passes `t` (a host-side counter, unbatched
+even when seeds are vmapped), and the auto-reset is a real `lax.cond` on `t`, not a select:
+under vmap a select would evaluate a full reset (200 physics steps for cheetah) on every
+step.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+import tasks
+from tasks import Task, TaskState
+
+
+@struct.dataclass
+class EnvState:
+    task: TaskState  # leaves batched over envs [N, ...]
+    episode_return: jax.Array  # [N] true return of the running episode
+    episode_success: jax.Array  # [N] 1 if success held at any step so far (BPref convention)
+
+
+@struct.dataclass
+class Transition:
+    obs: jax.Array  # [N, obs]
+    action: jax.Array  # [N, act]
+    next_obs: jax.Array  # [N, obs] observation after the action (before any auto-reset)
+    true_reward: jax.Array  # [N]
+    terminated: jax.Array  # [N] bool, true terminal state: no bootstrapping
+    truncated: jax.Array  # [N] bool, time limit: bootstrap through it
+    success: jax.Array  # [N] success at next_obs
+    episode_return: jax.Array  # [N] true return of the episode this step belongs to (so far)
+    episode_success: jax.Array  # [N] any-step success of the episode so far
+
+
+class VecEnv:
+    """`num_envs` copies of a task stepped with vmap, with time limit and auto-reset."""
+
+    def __init__(self, task: Task, num_envs: int):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if getattr(task, "terminates_early", False):
+            raise NotImplementedError(
+                f"{task.name} can terminate before its time limit; VecEnv resets all envs "
+                "together at the time limit and does not support early termination yet")
+        self.task = task
+        self.num_envs = num_envs
+        self.obs_size = task.obs_size
+        self.action_size = task.action_size
+        self.episode_length = task.episode_length
+        self._reset = jax.vmap(task.reset)
+        self._step = jax.vmap(task.step)
+
+    def reset(self, key: jax.Array) -> EnvState:
+        ts = self._reset(jax.random.split(key, self.num_envs))
+        zeros = jnp.zeros((self.num_envs,), jnp.float32)
+        return EnvState(task=ts, episode_return=zeros, episode_success=ts.success)
+
+    def advance(self, state: EnvState, action: jax.Array, t: jax.Array):
+        """Step every env without auto-reset; `t` is the shared index of this step within
+        the episode. Returns the running state and the transition."""
+        ts = self._step(state.task, action)
+        ep_return = state.episode_return + ts.true_reward
+        ep_success = jnp.maximum(state.episode_success, ts.success)
+        truncated = jnp.broadcast_to((t + 1) % self.episode_length == 0, (self.num_envs,))
+        transition = Transition(
+            obs=state.task.obs, action=action, next_obs=ts.obs, true_reward=ts.true_reward,
+            terminated=ts.terminated, truncated=truncated, success=ts.success,
+            episode_return=ep_return, episode_success=ep_success)
+        return EnvState(task=ts, episode_return=ep_return, episode_success=ep_success), transition
+
+    def step(self, state: EnvState, action: jax.Array, t: jax.Array, key: jax.Array):
+        """`advance`, then a reset of every env if the episode just hit its time limit."""
+        running, transition = self.advance(state, action, t)
+        next_state = jax.lax.cond((t + 1) % self.episode_length == 0,
+                                  lambda: self.reset(key), lambda: running)
+        return next_state, transition
+
+
+def make_env(task_name: str, num_envs: int = 1) -> VecEnv:
+    return VecEnv(tasks.make(task_name), num_envs)
+
+
+def task_names() -> list[str]:
+    return tasks.names()
+
+
+def get_task(task_name: str) -> Task:
+    return tasks.make(task_name)

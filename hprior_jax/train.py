@@ -1,0 +1,285 @@
+"""RunState, chunk functions and the host loop (DESIGN §4).
+
+Every leaf of `RunState` has a leading seed axis. The schedule (random seed steps, then SAC
+steps) is decided on the host from the global step, which is the same for every seed; each
+phase is a `lax.scan` chunk compiled once per (phase, length) as
+`jit(vmap(chunk, in_axes=(0, None)), donate_argnums=0)`. The global step enters unbatched,
+so per-step decisions derived from it (target-network EMA, episode ends) stay scalar.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from hprior_jax.agents.sac import SAC, SACState
+from hprior_jax.buffers import replay
+from hprior_jax.config import TrainConfig
+from hprior_jax.envs import EnvState, make_env
+from hprior_jax.evaluate import evaluate_policy
+
+RANDOM, SAC_PHASE = "random", "sac"
+
+
+@struct.dataclass
+class RunState:
+    sac: SACState
+    replay: replay.ReplayState
+    env: EnvState
+    key: jax.Array  # raw uint32[2] key (checkpoint-friendly)
+
+
+class Trainer:
+    """The static half of a run: env, agent, compiled chunks. Holds no mutable run state."""
+
+    def __init__(self, cfg: TrainConfig):
+        self.cfg = cfg
+        self.env = make_env(cfg.task, num_envs=1)
+        self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes)
+        self.task = self.env.task
+        self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
+        self._compiled: dict = {}
+        self.compile_seconds: dict[str, float] = {}
+
+    # -- pure functions (per seed) --------------------------------------------------------
+    def init(self, seed_key: jax.Array, capacity: int | None = None) -> RunState:
+        k_sac, k_env, k_run = jax.random.split(seed_key, 3)
+        capacity = capacity or self.cfg.capacity
+        return RunState(
+            sac=self.sac.init(k_sac),
+            replay=replay.init(capacity, self.env.obs_size, self.env.action_size),
+            env=self.env.reset(k_env), key=k_run)
+
+    def chunk(self, rs: RunState, step0: jax.Array, *, length: int, phase: str):
+        """`length` env steps starting at global step `step0` (one SAC update per step in
+        the SAC phase). Returns the new state and per-step metrics [length, ...]."""
+        bs = self.cfg.sac.batch_size
+
+        def body(rs: RunState, i):
+            step = step0 + i
+            key, k_act, k_sample, k_update, k_reset = jax.random.split(rs.key, 5)
+            obs = rs.env.task.obs[0]
+            sac_state, metrics = rs.sac, {}
+            if phase == RANDOM:
+                action = jax.random.uniform(k_act, (self.env.action_size,), minval=-1.0,
+                                            maxval=1.0)
+            else:
+                # BPref order: act with the current policy, update, then step the env
+                action = self.sac.act(sac_state.actor, obs, k_act)
+                batch = replay.sample(rs.replay, k_sample, bs)
+                sac_state, metrics = self.sac.update(sac_state, batch, k_update, step)
+            env_state, tr = self.env.step(rs.env, action[None], step, k_reset)
+            buf = replay.add(rs.replay, tr.obs[0], tr.action[0], tr.true_reward[0],
+                             tr.next_obs[0], 1.0 - tr.terminated[0].astype(jnp.float32),
+                             tr.true_reward[0])
+            metrics.update({
+                "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),
+                "episode/true_return": tr.episode_return[0],
+                "episode/success": tr.episode_success[0],
+            })
+            return RunState(sac=sac_state, replay=buf, env=env_state, key=key), metrics
+
+        return jax.lax.scan(body, rs, jnp.arange(length, dtype=jnp.int32))
+
+    def evaluate(self, actor_params, key: jax.Array):
+        policy = lambda obs: self.sac.act(actor_params, obs, key, deterministic=True)
+        return evaluate_policy(self.eval_env, policy, key)
+
+    # -- compiled, vmapped over seeds ---------------------------------------------------------
+    def _aot(self, name: str, fn, *args):
+        """Compiles ahead of time so compile time is measured apart from run time."""
+        if name not in self._compiled:
+            t0 = time.perf_counter()
+            self._compiled[name] = fn.lower(*args).compile()
+            self.compile_seconds[name] = time.perf_counter() - t0
+        return self._compiled[name]
+
+    def init_seeds(self, seeds, capacity: int | None = None) -> RunState:
+        keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+        return jax.jit(jax.vmap(partial(self.init, capacity=capacity)))(keys)
+
+    def run_chunk(self, rs: RunState, step0: int, length: int, phase: str):
+        fn = jax.jit(jax.vmap(partial(self.chunk, length=length, phase=phase),
+                              in_axes=(0, None)), donate_argnums=0)
+        step0 = np.int32(step0)
+        return self._aot(f"{phase}/{length}", fn, rs, step0)(rs, step0)
+
+    def run_eval(self, rs: RunState, seeds, step: int):
+        # keys derived from (seed, step) only: evaluation never touches the training stream
+        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(s), 0x5EED0000 + step)
+                          for s in seeds])
+        fn = jax.jit(jax.vmap(self.evaluate))
+        return self._aot("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
+
+    def phase_at(self, step: int) -> str:
+        return RANDOM if step < self.cfg.num_seed_steps else SAC_PHASE
+
+    def chunk_plan(self, step: int) -> tuple[str, int]:
+        """Phase and length of the next chunk: never crosses a phase change, evaluation,
+        checkpoint or the end of training."""
+        cfg = self.cfg
+        bounds = [cfg.steps, _next_multiple(step, cfg.chunk_steps),
+                  _next_multiple(step, cfg.eval_every), _next_multiple(step, cfg.checkpoint_every)]
+        if step < cfg.num_seed_steps:
+            bounds.append(cfg.num_seed_steps)
+        return self.phase_at(step), min(bounds) - step
+
+
+def _next_multiple(step: int, every: int) -> int:
+    return (step // every + 1) * every
+
+
+# ---------------------------------------------------------------------------------------------
+# host loop
+# ---------------------------------------------------------------------------------------------
+class TrainingDiverged(RuntimeError):
+    pass
+
+
+def _finite_or_raise(metrics: dict, step0: int, step1: int, seeds, run_dir, last_ckpt):
+    for name, value in metrics.items():
+        if name.startswith("train/"):
+            bad = ~np.all(np.isfinite(np.asarray(value)), axis=tuple(range(1, np.ndim(value))))
+            if bad.any():
+                which = [s for s, b in zip(seeds, bad) if b]
+                msg = (f"non-finite {name} between steps {step0} and {step1} for seed(s) "
+                       f"{which}. Nothing after step {last_ckpt} was saved; the run directory "
+                       f"{run_dir} keeps the checkpoint at step {last_ckpt} and all metrics up "
+                       "to it. Lower the learning rate (--sac.lr) or use other seeds, then "
+                       f"continue with `hprior train --resume {run_dir}` or start a new run.")
+                (Path(run_dir) / "error.txt").write_text(msg + "\n")
+                raise TrainingDiverged(msg)
+
+
+def prepare_run_dir(cfg: TrainConfig) -> Path:
+    """Creates the run directory; refuses to write into a non-empty one."""
+    out = Path(cfg.out) if cfg.out else Path("runs") / (
+        f"{cfg.task}_{cfg.algo}_{time.strftime('%Y%m%d-%H%M%S')}")
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(
+            f"output directory {out} exists and is not empty; continue it with "
+            f"`hprior train --resume {out}` or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(cfg.to_json() + "\n")
+    return out
+
+
+def load_run_config(run_dir: Path) -> TrainConfig:
+    path = Path(run_dir) / "config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found: --resume needs a run directory written "
+                                "by `hprior train`")
+    return TrainConfig.from_dict(json.loads(path.read_text()))
+
+
+def extend_run(run_dir: Path, steps: int) -> tuple[TrainConfig, int]:
+    """Raises the step budget of an existing run; returns the new config and the replay
+    capacity its checkpoints were written with."""
+    old = load_run_config(run_dir)
+    if steps < old.steps:
+        raise ValueError(f"--steps {steps} is below the run's budget {old.steps}; a resumed "
+                         "run can only be extended")
+    new = dataclasses.replace(old, steps=steps)
+    (Path(run_dir) / f"config.steps{old.steps}.json").write_text(old.to_json() + "\n")
+    (Path(run_dir) / "config.json").write_text(new.to_json() + "\n")
+    return new, old.capacity
+
+
+def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = True,
+        max_chunks: int | None = None, saved_capacity: int | None = None) -> RunState:
+    """Trains `cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to resume).
+
+    `max_chunks` stops early after that many chunks (used by tests to simulate an
+    interruption); the state is checkpointed at the stop. `saved_capacity` is the replay
+    capacity of the checkpoints when a resumed run's budget was extended."""
+    from hprior_jax.checkpoint import Checkpointer
+    from hprior_jax.plotting import plot_learning_curve
+    from hprior_jax.run_log import RunLog
+
+    run_dir = Path(run_dir)
+    trainer = Trainer(cfg)
+    seeds = list(cfg.seeds)
+    ckpt = Checkpointer(run_dir / "checkpoints")
+    step = 0
+    rs = trainer.init_seeds(seeds, capacity=saved_capacity if resume else None)
+    if resume and ckpt.latest_step() is not None:
+        step, rs = ckpt.restore(rs)
+    if rs.replay.capacity != cfg.capacity:
+        if replay.has_wrapped(rs.replay):
+            raise ValueError("the replay buffer of this run has wrapped around; it cannot be "
+                             "extended with --steps (start a new run instead)")
+        rs = rs.replace(replay=jax.vmap(partial(replay.grow, capacity=cfg.capacity))(rs.replay))
+    log = RunLog(run_dir, seeds, resume_step=step if resume else None)
+    has_success = trainer.task.has_success
+    last_ckpt = step
+    bar = _progress_bar(cfg.steps, step, progress)
+    chunks = 0
+    try:
+        while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
+            phase, length = trainer.chunk_plan(step)
+            t0 = time.perf_counter()
+            n_compiled = len(trainer.compile_seconds)
+            rs, metrics = trainer.run_chunk(rs, step, length, phase)
+            metrics = jax.device_get(metrics)
+            _finite_or_raise(metrics, step, step + length, seeds, run_dir, last_ckpt)
+            compile_s = sum(list(trainer.compile_seconds.values())[n_compiled:])
+            run_s = time.perf_counter() - t0 - compile_s
+            _log_chunk(log, seeds, step, metrics, has_success)
+            step += length
+            chunks += 1
+            perf = {"perf/env_steps_per_s": length * len(seeds) / max(run_s, 1e-9)}
+            if compile_s:
+                perf["perf/compile_s"] = compile_s
+                bar.write(f"compiled {phase} chunk of {length} steps in {compile_s:.1f} s")
+            for s in seeds:
+                log.log(step, s, perf)
+            if step % cfg.eval_every == 0 or step == cfg.steps:
+                n_compiled = len(trainer.compile_seconds)
+                returns, successes = jax.device_get(trainer.run_eval(rs, seeds, step))
+                for i, s in enumerate(seeds):
+                    log.log_eval(step, s, float(np.mean(returns[i])),
+                                 float(np.mean(successes[i])) if has_success else None)
+                bar.set_postfix_str(f"eval return {np.mean(returns):.1f}")
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps or (
+                    max_chunks is not None and chunks == max_chunks):
+                log.flush()
+                ckpt.save(step, rs)
+                last_ckpt = step
+            bar.update(length)
+            bar.set_description(f"{perf['perf/env_steps_per_s']:.0f} env steps/s")
+    finally:
+        bar.close()
+        log.close()
+        ckpt.close()
+    if (run_dir / "eval.csv").exists():
+        plot_learning_curve(run_dir / "eval.csv", run_dir / "learning_curve.png",
+                            title=f"{cfg.algo} on {cfg.task}")
+    return rs
+
+
+def _log_chunk(log, seeds, step0: int, metrics: dict, has_success: bool) -> None:
+    """Train-episode returns where episodes ended, mean losses per chunk."""
+    done = metrics["episode/done"]  # [S, T]
+    for i, s in enumerate(seeds):
+        for t in np.flatnonzero(done[i]):
+            ep = {"train/true_episode_return": metrics["episode/true_return"][i, t]}
+            if has_success:
+                ep["train/true_episode_success"] = metrics["episode/success"][i, t]
+            log.log(step0 + int(t) + 1, s, ep)
+        losses = {k: float(np.mean(v[i])) for k, v in metrics.items() if k.startswith("train/")}
+        if losses:
+            log.log(step0 + done.shape[1], s, losses)
+
+
+def _progress_bar(total: int, initial: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, unit="step", disable=not enabled,
+                dynamic_ncols=True, mininterval=1.0)

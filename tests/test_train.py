@@ -1,0 +1,118 @@
+"""The training loop on the toy task (compiles in seconds): seeds, resume, run dirs, errors."""
+import csv
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from hprior_jax import cli, train
+from hprior_jax.agents.sac import SACConfig
+from hprior_jax.config import TrainConfig
+
+TOY = dict(task="toy_point", steps=80, num_seed_steps=20, chunk_steps=20, eval_every=40,
+           checkpoint_every=40, num_eval_episodes=2,
+           sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8))
+
+
+def _cfg(tmp_path, name="run", **kw):
+    return TrainConfig(**{**TOY, "out": str(tmp_path / name), **kw})
+
+
+def _leaves(rs):
+    return [np.asarray(x) for x in jax.tree.leaves(rs)]
+
+
+def test_seed_alone_equals_its_slot_in_a_vmapped_batch(tmp_path):
+    both = train.run(_cfg(tmp_path, "both", seeds=(12345, 23456)),
+                     train.prepare_run_dir(_cfg(tmp_path, "both", seeds=(12345, 23456))),
+                     progress=False)
+    alone = train.run(_cfg(tmp_path, "alone", seeds=(12345,)),
+                      train.prepare_run_dir(_cfg(tmp_path, "alone", seeds=(12345,))),
+                      progress=False)
+    for a, b in zip(_leaves(alone), _leaves(both)):
+        np.testing.assert_allclose(a[0], b[0], rtol=1e-4, atol=1e-5)
+    # and the two seeds really differ
+    assert not np.allclose(np.asarray(both.sac.log_alpha)[0], np.asarray(both.sac.log_alpha)[1])
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    """2 chunks + checkpoint + restore + 2 chunks == 4 chunks."""
+    cfg_full = _cfg(tmp_path, "full")
+    full = train.run(cfg_full, train.prepare_run_dir(cfg_full), progress=False)
+    cfg = _cfg(tmp_path, "split")
+    run_dir = train.prepare_run_dir(cfg)
+    train.run(cfg, run_dir, progress=False, max_chunks=2)
+    assert (run_dir / "checkpoints").exists()
+    resumed = train.run(train.load_run_config(run_dir), run_dir, resume=True, progress=False)
+    for a, b in zip(_leaves(full), _leaves(resumed)):
+        np.testing.assert_array_equal(a, b)
+    rows = list(csv.DictReader(open(run_dir / "eval.csv")))
+    assert [int(r["step"]) for r in rows] == [40, 80]  # no duplicates after the resume
+    full_rows = list(csv.DictReader(open(tmp_path / "full" / "eval.csv")))
+    assert rows == full_rows
+
+
+def test_refuses_non_empty_output_dir_and_keeps_it(tmp_path):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="--resume"):
+        train.prepare_run_dir(_cfg(tmp_path, "busy"))
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path):
+    cfg = _cfg(tmp_path, "nan", task="toy_nan", num_seed_steps=40)
+    run_dir = train.prepare_run_dir(cfg)
+    with pytest.raises(train.TrainingDiverged, match="--sac.lr.*--resume"):
+        train.run(cfg, run_dir, progress=False)
+    assert (run_dir / "error.txt").exists()
+    assert (run_dir / "checkpoints" / "40").exists()  # the last good state is kept
+    assert (run_dir / "config.json").exists()
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(algo="ppo"), "unknown algorithm 'ppo'; available: sac"),
+    (dict(seeds=(1, 1)), "duplicates"),
+    (dict(steps=10, num_seed_steps=20), "--num-seed-steps"),
+    (dict(chunk_steps=0), "--chunk-steps"),
+    (dict(steps=4, num_seed_steps=0), "--sac.batch-size"),
+])
+def test_config_errors_name_the_fix(tmp_path, kw, match):
+    with pytest.raises(ValueError, match=match):
+        _cfg(tmp_path, **kw)
+
+
+def test_cli_writes_a_complete_run_directory(tmp_path, capsys):
+    out = tmp_path / "cli"
+    rc = cli.main(["train", "--task", "toy_point", "--preset", "smoke", "--steps", "60",
+                   "--num-seed-steps", "20", "--chunk-steps", "20", "--eval-every", "40",
+                   "--checkpoint-every", "40", "--num-eval-episodes", "2", "--sac.hidden-dim",
+                   "16", "--sac.batch-size", "8", "--seeds", "1", "2", "--out", str(out),
+                   "--no-progress"])
+    assert rc == 0
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["seeds"] == [1, 2] and cfg["sac"]["hidden_dim"] == 16 and cfg["steps"] == 60
+    rows = list(csv.DictReader(open(out / "eval.csv")))
+    assert [(int(r["step"]), int(r["seed"])) for r in rows] == [(40, 1), (40, 2), (60, 1), (60, 2)]
+    assert all(r["success"] != "" for r in rows)  # the toy task defines success
+    records = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines()]
+    assert any("train/critic_loss" in r for r in records)
+    assert any("perf/env_steps_per_s" in r for r in records)
+    assert (out / "learning_curve.png").stat().st_size > 1000
+    assert (out / "checkpoints" / "60").exists()
+    assert list((out / "tb").glob("seed_1/events.out.tfevents.*"))
+    assert str(out) in capsys.readouterr().out
+    # a second run into the same directory is refused without touching it
+    assert cli.main(["train", "--task", "toy_point", "--out", str(out)]) == 2
+    assert "--resume" in capsys.readouterr().err
+    # --resume with a longer budget continues the run
+    assert cli.main(["train", "--resume", str(out), "--steps", "80", "--no-progress"]) == 0
+    rows = list(csv.DictReader(open(out / "eval.csv")))
+    assert [int(r["step"]) for r in rows][-2:] == [80, 80]
+
+
+def test_cli_unknown_task_lists_available(capsys):
+    assert cli.main(["train", "--task", "nope", "--out", "/tmp/never"]) == 2
+    assert "available tasks" in capsys.readouterr().err
