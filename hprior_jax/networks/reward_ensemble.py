@@ -90,7 +90,8 @@ def init_reward_ensemble(key: jax.Array, obs_size: int, act_size: int,
     net = RewardNet(cfg)
     dummy = jnp.zeros((1, obs_size + act_size), jnp.float32)
     keys = jax.random.split(key, cfg.ensemble_size)
-    return jax.vmap(lambda k: net.init(k, dummy))(keys)
+    # jit: one compiled program instead of dozens of eager ops when called outside jit.
+    return jax.jit(jax.vmap(net.init, in_axes=(0, None)))(keys, dummy)
 
 
 def member_rewards(params: Params, obs: jax.Array, act: jax.Array,

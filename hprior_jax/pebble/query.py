@@ -89,6 +89,20 @@ def take_pairs(pairs: SegmentPairs, idx: jax.Array) -> SegmentPairs:
     return jax.tree_util.tree_map(lambda x: x[idx], pairs)
 
 
+def select_from_pool(params: Params, pool: SegmentPairs, *, rule: str, mb_size: int,
+                     reward_cfg: RewardConfig = RewardConfig()) -> SegmentPairs:
+    """Keep the `mb_size` (static) highest-scoring pairs of `pool`, best first
+    ("disagreement" or "entropy"; BPref `(-score).argsort()[:mb_size]`)."""
+    if rule == "disagreement":
+        scores = disagreement_scores(params, pool, reward_cfg)
+    elif rule == "entropy":
+        scores = entropy_scores(params, pool, reward_cfg)
+    else:
+        raise ValueError(f"select_from_pool needs rule 'disagreement' or 'entropy', got {rule!r}")
+    _, top = jax.lax.top_k(scores, mb_size)
+    return take_pairs(pool, top)
+
+
 def select_queries(key: jax.Array, params: Params, obs: jax.Array, act: jax.Array,
                    true_reward: jax.Array, num_episodes: jax.Array, *, rule: str, mb_size: int,
                    segment_len: int, large_batch: int = 10,
@@ -110,10 +124,7 @@ def select_queries(key: jax.Array, params: Params, obs: jax.Array, act: jax.Arra
     else:
         pool = sample_segment_pairs(k_pool, obs, act, true_reward, num_episodes,
                                     mb_size * large_batch, segment_len, include_last_step)
-        score_fn = disagreement_scores if rule == "disagreement" else entropy_scores
-        scores = score_fn(params, pool, reward_cfg)
-        _, top = jax.lax.top_k(scores, mb_size)
-        pairs = take_pairs(pool, top)
+        pairs = select_from_pool(params, pool, rule=rule, mb_size=mb_size, reward_cfg=reward_cfg)
     if num_queries is not None:
         pairs = pairs.replace(mask=jnp.arange(mb_size) < num_queries)
     return pairs
