@@ -1,8 +1,8 @@
 """RunState, chunk functions and the host loop (DESIGN §4).
 
 Every leaf of `RunState` has a leading seed axis. The schedule (random seed steps, then SAC
-steps) is decided on the host from the global step, which is the same for every seed; each
-phase is a `lax.scan` chunk compiled once per (phase, length) as
+steps) is decided on the host from the global step, which is the same for every seed; a
+chunk is a `lax.scan` over env steps compiled once per length as
 `jit(vmap(chunk, in_axes=(0, None)), donate_argnums=0)`. The global step enters unbatched,
 so per-step decisions derived from it (target-network EMA, episode ends) stay scalar.
 """
@@ -57,28 +57,37 @@ class Trainer:
             replay=replay.init(capacity, self.env.obs_size, self.env.action_size),
             env=self.env.reset(k_env), key=k_run)
 
-    def chunk(self, rs: RunState, step0: jax.Array, *, length: int, phase: str):
-        """`length` env steps starting at global step `step0` (one SAC update per step in
-        the SAC phase). Returns the new state and per-step metrics [length, ...]."""
+    def chunk(self, rs: RunState, step0: jax.Array, *, length: int):
+        """`length` env steps from global step `step0`: uniform-random actions without updates
+        before `num_seed_steps`, then policy actions with one SAC update per step. A chunk
+        never crosses that boundary, so the phase is one unbatched `lax.cond` predicate: a
+        real branch under vmap, and a single compiled program for both phases."""
         bs = self.cfg.sac.batch_size
+        learning = step0 >= self.cfg.num_seed_steps
+
+        def random_step(sac_state, buf, obs, step, keys):
+            action = jax.random.uniform(keys[0], (self.env.action_size,), minval=-1.0,
+                                        maxval=1.0)
+            return action, sac_state, self._zero_metrics
+
+        def sac_step(sac_state, buf, obs, step, keys):
+            # BPref order: act with the current policy, update, then step the env
+            action = self.sac.act(sac_state.actor, obs, keys[0])
+            batch = replay.sample(buf, keys[1], bs)
+            sac_state, metrics = self.sac.update(sac_state, batch, keys[2], step)
+            return action, sac_state, metrics
 
         def body(rs: RunState, i):
             step = step0 + i
             key, k_act, k_sample, k_update, k_reset = jax.random.split(rs.key, 5)
-            obs = rs.env.task.obs[0]
-            sac_state, metrics = rs.sac, {}
-            if phase == RANDOM:
-                action = jax.random.uniform(k_act, (self.env.action_size,), minval=-1.0,
-                                            maxval=1.0)
-            else:
-                # BPref order: act with the current policy, update, then step the env
-                action = self.sac.act(sac_state.actor, obs, k_act)
-                batch = replay.sample(rs.replay, k_sample, bs)
-                sac_state, metrics = self.sac.update(sac_state, batch, k_update, step)
+            action, sac_state, metrics = jax.lax.cond(
+                learning, sac_step, random_step, rs.sac, rs.replay, rs.env.task.obs[0], step,
+                (k_act, k_sample, k_update))
             env_state, tr = self.env.step(rs.env, action[None], step, k_reset)
             buf = replay.add(rs.replay, tr.obs[0], tr.action[0], tr.true_reward[0],
                              tr.next_obs[0], 1.0 - tr.terminated[0].astype(jnp.float32),
                              tr.true_reward[0])
+            metrics = dict(metrics)
             metrics.update({
                 "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),
                 "episode/true_return": tr.episode_return[0],
@@ -87,6 +96,12 @@ class Trainer:
             return RunState(sac=sac_state, replay=buf, env=env_state, key=key), metrics
 
         return jax.lax.scan(body, rs, jnp.arange(length, dtype=jnp.int32))
+
+    @property
+    def _zero_metrics(self) -> dict:
+        return {k: jnp.zeros((), jnp.float32) for k in (
+            "train/critic_loss", "train/q", "train/actor_loss", "train/alpha_loss",
+            "train/alpha", "train/entropy")}
 
     def evaluate(self, actor_params, key: jax.Array):
         policy = lambda obs: self.sac.act(actor_params, obs, key, deterministic=True)
@@ -105,11 +120,11 @@ class Trainer:
         keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
         return jax.jit(jax.vmap(partial(self.init, capacity=capacity)))(keys)
 
-    def run_chunk(self, rs: RunState, step0: int, length: int, phase: str):
-        fn = jax.jit(jax.vmap(partial(self.chunk, length=length, phase=phase),
-                              in_axes=(0, None)), donate_argnums=0)
+    def run_chunk(self, rs: RunState, step0: int, length: int):
+        fn = jax.jit(jax.vmap(partial(self.chunk, length=length), in_axes=(0, None)),
+                     donate_argnums=0)
         step0 = np.int32(step0)
-        return self._aot(f"{phase}/{length}", fn, rs, step0)(rs, step0)
+        return self._aot(f"chunk/{length}", fn, rs, step0)(rs, step0)
 
     def run_eval(self, rs: RunState, seeds, step: int):
         # keys derived from (seed, step) only: evaluation never touches the training stream
@@ -225,11 +240,14 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             phase, length = trainer.chunk_plan(step)
             t0 = time.perf_counter()
-            n_compiled = len(trainer.compile_seconds)
-            rs, metrics = trainer.run_chunk(rs, step, length, phase)
+            compiled_before = set(trainer.compile_seconds)
+            rs, metrics = trainer.run_chunk(rs, step, length)
             metrics = jax.device_get(metrics)
+            if phase == RANDOM:  # no updates ran: drop the placeholder losses
+                metrics = {k: v for k, v in metrics.items() if not k.startswith("train/")}
             _finite_or_raise(metrics, step, step + length, seeds, run_dir, last_ckpt)
-            compile_s = sum(list(trainer.compile_seconds.values())[n_compiled:])
+            compile_s = sum(v for k, v in trainer.compile_seconds.items()
+                            if k not in compiled_before)
             run_s = time.perf_counter() - t0 - compile_s
             _log_chunk(log, seeds, step, metrics, has_success)
             step += length
@@ -237,11 +255,9 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
             perf = {"perf/env_steps_per_s": length * len(seeds) / max(run_s, 1e-9)}
             if compile_s:
                 perf["perf/compile_s"] = compile_s
-                bar.write(f"compiled {phase} chunk of {length} steps in {compile_s:.1f} s")
             for s in seeds:
                 log.log(step, s, perf)
             if step % cfg.eval_every == 0 or step == cfg.steps:
-                n_compiled = len(trainer.compile_seconds)
                 returns, successes = jax.device_get(trainer.run_eval(rs, seeds, step))
                 for i, s in enumerate(seeds):
                     log.log_eval(step, s, float(np.mean(returns[i])),
@@ -252,6 +268,9 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
                 log.flush()
                 ckpt.save(step, rs)
                 last_ckpt = step
+            for name in sorted(set(trainer.compile_seconds) - compiled_before):
+                bar.write(f"compiled {name} in {trainer.compile_seconds[name]:.1f} s "
+                          "(once per shape; not counted in env steps/s)")
             bar.update(length)
             bar.set_description(f"{perf['perf/env_steps_per_s']:.0f} env steps/s")
     finally:

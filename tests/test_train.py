@@ -116,3 +116,18 @@ def test_cli_writes_a_complete_run_directory(tmp_path, capsys):
 def test_cli_unknown_task_lists_available(capsys):
     assert cli.main(["train", "--task", "nope", "--out", "/tmp/never"]) == 2
     assert "available tasks" in capsys.readouterr().err
+
+
+def test_random_phase_collects_without_updating(tmp_path):
+    cfg = _cfg(tmp_path, "seedphase", num_seed_steps=40)
+    trainer = train.Trainer(cfg)
+    rs0 = trainer.init_seeds(cfg.seeds)
+    init_actor = [np.asarray(x) for x in jax.tree.leaves(rs0.sac.actor)]
+    rs, metrics = trainer.run_chunk(rs0, 0, 20)
+    for a, b in zip(init_actor, jax.tree.leaves(rs.sac.actor)):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    assert int(np.asarray(rs.replay.size)[0]) == 20
+    actions = np.asarray(rs.replay.action)[0, :20]
+    assert actions.min() >= -1 and actions.max() <= 1 and actions.std() > 0.3  # uniform
+    rs, _ = trainer.run_chunk(rs, 40, 20)  # learning phase (the step index decides)
+    assert not np.array_equal(init_actor[0], np.asarray(jax.tree.leaves(rs.sac.actor)[0]))
