@@ -1,0 +1,102 @@
+"""Throughput of the MJX MetaWorld ports next to metaworld's own C environment.
+
+    python -m benchmarks.metaworld_throughput [--tasks drawer_open ...] [--batch 64] [--steps 20]
+
+MJX: env steps/s (one env step = 5 physics substeps) of `jit(lax.scan(vmap(step)))` at the
+given batch, random actions, best of `--repeats` timed runs after compile; compile time is
+reported apart. C: metaworld's `env.step` (gymnasium, 5 x mj_step + obs + reward) on one
+core, random actions. Writes benchmarks/results/metaworld_throughput.csv.
+"""
+from __future__ import annotations
+
+import tasks  # noqa: F401  (sets XLA_FLAGS before jax)
+
+import argparse
+import csv
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tasks.metaworld.reference import make_env, metaworld_version
+
+TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
+RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_throughput.csv")
+
+
+def mjx_rate(task, batch: int, steps: int, repeats: int):
+    step = jax.vmap(task.step)
+
+    @jax.jit
+    def rollout(state, key):
+        actions = jax.random.uniform(key, (steps, batch, task.action_size), minval=-1, maxval=1)
+        state, rewards = jax.lax.scan(lambda s, a: (lambda n: (n, n.true_reward))(step(s, a)),
+                                      state, actions)
+        return state, rewards
+
+    state = jax.jit(jax.vmap(task.reset))(jax.random.split(jax.random.key(0), batch))
+    t0 = time.perf_counter()
+    state, r = rollout(state, jax.random.key(1))
+    jax.block_until_ready(r)
+    compile_s = time.perf_counter() - t0
+    best = float("inf")
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        state, r = rollout(state, jax.random.key(2 + i))
+        jax.block_until_ready(r)
+        best = min(best, time.perf_counter() - t0)
+    assert np.isfinite(np.asarray(r)).all()
+    return batch * steps / best, compile_s
+
+
+def c_rate(name: str, steps: int = 500):
+    env = make_env(name, seed=0)
+    env.reset()
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-1, 1, (steps, 4))
+    t0 = time.perf_counter()
+    for a in acts:
+        env.step(a)
+    return steps / (time.perf_counter() - t0)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--tasks", nargs="*", default=None)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--out", default=RESULTS)
+    args = p.parse_args()
+    names = args.tasks or [n for n in TASKS if n in tasks.names()]
+    rows = []
+    for name in names:
+        task = tasks.make(name)
+        m = task.mj_model
+        rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats)
+        row = dict(task=name, batch=args.batch, scan_steps=args.steps,
+                   mjx_env_steps_per_s=round(rate, 1), mjx_substeps_per_s=round(5 * rate, 1),
+                   compile_s=round(compile_s, 1), c_env_steps_per_s=round(c_rate(name), 1),
+                   nq=m.nq, nv=m.nv, npair=m.npair, devices=str(jax.devices()[0]),
+                   cpu_count=os.cpu_count(), metaworld=metaworld_version(),
+                   jax=jax.__version__, mujoco=__import__("mujoco").__version__)
+        print(row, flush=True)
+        rows.append(row)
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    existing = []
+    if os.path.exists(args.out):
+        with open(args.out) as f:
+            existing = [r for r in csv.DictReader(f)
+                        if not (r["task"] in names and r["batch"] == str(args.batch))]
+    with open(args.out, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()), extrasaction="ignore")
+        w.writeheader()
+        for r in existing + rows:
+            w.writerow(r)
+    print("wrote", args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""window-open-v3 (metaworld/envs/sawyer_window_open_v3.py, sawyer_window_horizontal.xml).
+
+Contacts: the 4 gripper geoms x the 3 handle capsules of the sliding pane `windowb_a`:
+12 pairs. The scripted policy pushes the handle sideways (+x); frame, glass and the fixed
+pane are off its path.
+
+Reset quirk kept on purpose: metaworld computes `window_handle_pos_init` (the margin of the
+reach reward) right after moving the window *without* a forward pass, so it reads the
+handle where the *previous* random placement put it (reset_model runs twice per reset, each
+drawing a placement). We draw that placement independently from the same range too.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tasks.metaworld import reward_utils as ru
+from tasks.metaworld.sawyer import SawyerTask, SceneSpec
+
+TARGET_RADIUS = 0.05
+
+
+class WindowOpen(SawyerTask):
+    name = "window_open"
+    scene = SceneSpec(
+        xml="sawyer_window_horizontal.xml",
+        hand_init_pos=(0.0, 0.4, 0.2),
+        object_geoms=(("windowb_a", (2, 3, 4)),),
+        placed_body="window",
+    )
+    obj_low = (-0.1, 0.7, 0.16)
+    obj_high = (0.1, 0.9, 0.16)
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        m = self.mj_model
+        # handle site relative to the window body at slide 0 (both are rigidly attached then)
+        sid, wid = m.site("handleOpenStart").id, m.body("window").id
+        import mujoco
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+        self._handle_offset = jnp.asarray(d.site_xpos[sid] - d.xpos[wid], jnp.float32)
+
+    def _place(self, key, data):
+        k1, k2 = jax.random.split(key)
+        pos = self.sample_uniform(k1, self.obj_low, self.obj_high)
+        stale = self.sample_uniform(k2, self.obj_low, self.obj_high)
+        return data, {"placement": pos, "obj_init_pos": pos,
+                      "target_pos": pos + jnp.array([0.2, 0.0, 0.0]),
+                      "handle_pos_init": stale + self._handle_offset}
+
+    def _objects(self, data):
+        return self.site_pos(data, "handleOpenStart"), jnp.zeros(4)
+
+    def _reward(self, obs, action, data, info):
+        obj = self.site_pos(data, "handleOpenStart")
+        tcp = self.tcp_center(data)
+        target = info["target_pos"]
+        target_to_obj = jnp.abs(obj[0] - target[0])
+        target_to_obj_init = jnp.abs(info["obj_init_pos"][0] - target[0])
+        in_place = ru.tolerance(target_to_obj, bounds=(0, TARGET_RADIUS),
+                                margin=jnp.abs(target_to_obj_init - TARGET_RADIUS),
+                                sigmoid="long_tail")
+        handle_radius = 0.02
+        tcp_to_obj = jnp.linalg.norm(obj - tcp)
+        tcp_to_obj_init = jnp.linalg.norm(info["handle_pos_init"] - info["init_tcp"])
+        reach = ru.tolerance(tcp_to_obj, bounds=(0, handle_radius),
+                             margin=jnp.abs(tcp_to_obj_init - handle_radius), sigmoid="long_tail")
+        reward = 10 * ru.hamacher_product(reach, in_place)
+        return reward, (target_to_obj <= TARGET_RADIUS).astype(jnp.float32)
+
+    def _task_info_from_metaworld(self, env):
+        return {"obj_init_pos": np.asarray(env.obj_init_pos),
+                "target_pos": np.asarray(env._target_pos),
+                "handle_pos_init": np.asarray(env.window_handle_pos_init)}
