@@ -56,7 +56,9 @@ def _metaworld(module: str, cls: str) -> Callable[[], Task]:
     return factory
 
 
-for _name, _cls in (("drawer_open", "DrawerOpen"),):
+for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress"),
+                    ("door_open", "DoorOpen"), ("window_open", "WindowOpen"),
+                    ("door_unlock", "DoorUnlock")):
     register(_name, _metaworld(_name, _cls))
 
 
