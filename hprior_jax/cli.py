@@ -28,7 +28,9 @@ def _train(argv: list[str]) -> int:
     pre.add_argument("--resume", default=None)
     pre.add_argument("--steps", type=int, default=None)
     pre.add_argument("--no-progress", action="store_true")
+    pre.add_argument("--teacher", default=None)
     known, rest = pre.parse_known_args(argv)
+    argv = [ALIASES.get(a, a) for a in argv]
 
     from hprior_jax.setup_jax import enable_compilation_cache
     from hprior_jax import train
@@ -47,8 +49,10 @@ def _train(argv: list[str]) -> int:
         from hprior_jax import presets
 
         default = presets.train_preset(known.task, known.algo, known.preset)
+        if known.teacher is not None:
+            default = presets.with_teacher(default, known.teacher)
         if "-h" not in rest and "--help" not in rest:
-            rest = [a for a in argv if a != "--no-progress"]
+            rest = _drop_option([a for a in argv if a != "--no-progress"], "--teacher")
         cfg = tyro.cli(train.TrainConfig, default=default, args=rest,
                        prog="hprior train", description="Train an agent on an MJX task.")
         run_dir = train.prepare_run_dir(cfg)
@@ -60,6 +64,23 @@ def _train(argv: list[str]) -> int:
     print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
           "tb/ (TensorBoard), checkpoints/", flush=True)
     return 0
+
+
+# short spellings of nested options (issue texts and the paper use these names)
+ALIASES = {"--feedback": "--pebble.max-feedback",
+           "--queries-per-round": "--pebble.queries-per-round"}
+
+
+def _drop_option(argv: list[str], name: str) -> list[str]:
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == name:
+            skip = True
+        elif not a.startswith(name + "="):
+            out.append(a)
+    return out
 
 
 def _tasks(argv: list[str]) -> int:

@@ -7,8 +7,10 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from hprior_jax.agents.sac import SACConfig
+from hprior_jax.pebble.config import PebbleConfig
+from hprior_jax.pebble.teacher import TeacherConfig
 
-ALGORITHMS = ("sac",)  # grows with the PbRL algorithms (pebble, prior, ...)
+ALGORITHMS = ("sac", "pebble")  # grows with the PbRL algorithms (prior, surf, ...)
 PRESETS = ("paper", "reduced", "smoke")
 
 
@@ -36,6 +38,8 @@ class TrainConfig:
     out: str = ""
     """Run directory (default: runs/<task>_<algo>_<time>)."""
     sac: SACConfig = field(default_factory=SACConfig)
+    pebble: PebbleConfig = field(default_factory=PebbleConfig)
+    """Preference learning (used by --algo pebble and the methods built on it)."""
 
     def __post_init__(self):
         if self.algo not in ALGORITHMS:
@@ -70,5 +74,8 @@ class TrainConfig:
     def from_dict(d: dict) -> "TrainConfig":
         d = dict(d)
         d["sac"] = SACConfig(**d["sac"])
+        pebble = dict(d.get("pebble", {}))
+        pebble["teacher"] = TeacherConfig(**pebble.get("teacher", {}))
+        d["pebble"] = PebbleConfig(**pebble)
         d["seeds"] = tuple(d["seeds"])
         return TrainConfig(**d)

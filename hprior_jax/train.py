@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -34,10 +36,20 @@ class RunState:
     replay: replay.ReplayState
     env: EnvState
     key: jax.Array  # raw uint32[2] key (checkpoint-friendly)
+    extra: Any = None  # algorithm-specific state (PEBBLE: reward model, preferences, ...)
+
+
+SAC_METRICS = ("train/critic_loss", "train/q", "train/actor_loss", "train/alpha_loss",
+               "train/alpha", "train/entropy")
 
 
 class Trainer:
-    """The static half of a run: env, agent, compiled chunks. Holds no mutable run state."""
+    """The static half of a run: env, agent, compiled chunks. Holds no mutable run state.
+
+    Algorithms extend it (see `hprior_jax.pebble.trainer`) through four hooks: the phases and
+    their per-step functions (`phases`, `phase_starts`, `_phase_steps`), the reward stored
+    with each new transition (`_stored_reward`), extra state (`_init_extra`), and host-side
+    events between chunks (`event_steps`, `run_event`)."""
 
     def __init__(self, cfg: TrainConfig):
         self.cfg = cfg
@@ -48,60 +60,108 @@ class Trainer:
         self._compiled: dict = {}
         self.compile_seconds: dict[str, float] = {}
 
+    # -- schedule (host side, the same for every seed) ---------------------------------------
+    @property
+    def phases(self) -> tuple[str, ...]:
+        return (RANDOM, SAC_PHASE)
+
+    def phase_starts(self) -> tuple[int, ...]:
+        """First global step of each phase after the first."""
+        return (self.cfg.num_seed_steps,)
+
+    def phase_at(self, step: int) -> str:
+        return self.phases[sum(step >= b for b in self.phase_starts())]
+
+    def phase_metrics(self, phase: str) -> tuple[str, ...]:
+        """The `train/` metrics that are meaningful in `phase` (others are placeholders)."""
+        return () if phase == RANDOM else SAC_METRICS
+
+    def event_steps(self) -> list[int]:
+        """Global steps before which `run_event` runs (PEBBLE: feedback rounds)."""
+        return []
+
+    def run_event(self, rs: RunState, step: int):
+        raise NotImplementedError
+
+    def chunk_plan(self, step: int) -> tuple[str, int]:
+        """Phase and length of the next chunk: never crosses a phase change, event,
+        evaluation, checkpoint or the end of training."""
+        cfg = self.cfg
+        bounds = [cfg.steps, _next_multiple(step, cfg.chunk_steps),
+                  _next_multiple(step, cfg.eval_every), _next_multiple(step, cfg.checkpoint_every)]
+        bounds += [b for b in (*self.phase_starts(), *self.event_steps()) if b > step]
+        return self.phase_at(step), min(bounds) - step
+
     # -- pure functions (per seed) --------------------------------------------------------
     def init(self, seed_key: jax.Array, capacity: int | None = None) -> RunState:
-        k_sac, k_env, k_run = jax.random.split(seed_key, 3)
+        k_sac, k_env, k_run, k_extra = jax.random.split(seed_key, 4)
         capacity = capacity or self.cfg.capacity
         return RunState(
             sac=self.sac.init(k_sac),
             replay=replay.init(capacity, self.env.obs_size, self.env.action_size),
-            env=self.env.reset(k_env), key=k_run)
+            env=self.env.reset(k_env), key=k_run, extra=self._init_extra(k_extra))
+
+    def _init_extra(self, key: jax.Array):
+        return None
+
+    def _stored_reward(self, rs: RunState, obs, action, true_reward):
+        """The reward written with a new transition: SAC on the true reward stores it."""
+        return true_reward
+
+    def _random_step(self, rs: RunState, obs, step, keys):
+        action = jax.random.uniform(keys[0], (self.env.action_size,), minval=-1.0, maxval=1.0)
+        return action, rs, {}
+
+    def _sac_step(self, rs: RunState, obs, step, keys, reward_fn=None):
+        """BPref order: act with the current policy, update, then (the caller) steps the env.
+        `reward_fn(rs, batch) -> (reward, rs)` replaces the buffer's reward (pre-training)."""
+        action = self.sac.act(rs.sac.actor, obs, keys[0])
+        batch = replay.sample(rs.replay, keys[1], self.sac.cfg.batch_size)
+        metrics = {}
+        if reward_fn is not None:
+            reward, rs, metrics = reward_fn(rs, batch)
+            batch = batch._replace(reward=reward)
+        sac_state, sac_metrics = self.sac.update(rs.sac, batch, keys[2], step)
+        return action, rs.replace(sac=sac_state), {**metrics, **sac_metrics}
+
+    def _phase_steps(self) -> dict:
+        """Per-step function of each phase: (rs, obs, step, keys) -> (action, rs, metrics)."""
+        return {RANDOM: self._random_step, SAC_PHASE: self._sac_step}
 
     def chunk(self, rs: RunState, step0: jax.Array, *, length: int):
-        """`length` env steps from global step `step0`: uniform-random actions without updates
-        before `num_seed_steps`, then policy actions with one SAC update per step. A chunk
-        never crosses that boundary, so the phase is one unbatched `lax.cond` predicate: a
-        real branch under vmap, and a single compiled program for both phases."""
-        bs = self.cfg.sac.batch_size
-        learning = step0 >= self.cfg.num_seed_steps
+        """`length` env steps from global step `step0`. A chunk never crosses a phase change,
+        so the phase is an unbatched `lax.switch` index: a real branch under vmap, and one
+        compiled program for every phase."""
+        steps = self._phase_steps()
+        branches = [steps[p] for p in self.phases]
+        phase = sum((step0 >= b).astype(jnp.int32) for b in self.phase_starts())
+        metric_keys = sorted({k for p in self.phases for k in self.phase_metrics(p)})
 
-        def random_step(sac_state, buf, obs, step, keys):
-            action = jax.random.uniform(keys[0], (self.env.action_size,), minval=-1.0,
-                                        maxval=1.0)
-            return action, sac_state, self._zero_metrics
-
-        def sac_step(sac_state, buf, obs, step, keys):
-            # BPref order: act with the current policy, update, then step the env
-            action = self.sac.act(sac_state.actor, obs, keys[0])
-            batch = replay.sample(buf, keys[1], bs)
-            sac_state, metrics = self.sac.update(sac_state, batch, keys[2], step)
-            return action, sac_state, metrics
+        def padded(fn):
+            def run(*args):
+                action, rs, m = fn(*args)
+                return action, rs, {k: m.get(k, jnp.zeros((), jnp.float32)) for k in metric_keys}
+            return run
 
         def body(rs: RunState, i):
             step = step0 + i
             key, k_act, k_sample, k_update, k_reset = jax.random.split(rs.key, 5)
-            action, sac_state, metrics = jax.lax.cond(
-                learning, sac_step, random_step, rs.sac, rs.replay, rs.env.task.obs[0], step,
-                (k_act, k_sample, k_update))
+            obs = rs.env.task.obs[0]
+            action, rs, metrics = jax.lax.switch(phase, [padded(b) for b in branches], rs, obs,
+                                                 step, (k_act, k_sample, k_update))
             env_state, tr = self.env.step(rs.env, action[None], step, k_reset)
-            buf = replay.add(rs.replay, tr.obs[0], tr.action[0], tr.true_reward[0],
-                             tr.next_obs[0], 1.0 - tr.terminated[0].astype(jnp.float32),
-                             tr.true_reward[0])
+            reward = self._stored_reward(rs, tr.obs[0], tr.action[0], tr.true_reward[0])
+            buf = replay.add(rs.replay, tr.obs[0], tr.action[0], reward, tr.next_obs[0],
+                             1.0 - tr.terminated[0].astype(jnp.float32), tr.true_reward[0])
             metrics = dict(metrics)
             metrics.update({
                 "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),
                 "episode/true_return": tr.episode_return[0],
                 "episode/success": tr.episode_success[0],
             })
-            return RunState(sac=sac_state, replay=buf, env=env_state, key=key), metrics
+            return rs.replace(replay=buf, env=env_state, key=key), metrics
 
         return jax.lax.scan(body, rs, jnp.arange(length, dtype=jnp.int32))
-
-    @property
-    def _zero_metrics(self) -> dict:
-        return {k: jnp.zeros((), jnp.float32) for k in (
-            "train/critic_loss", "train/q", "train/actor_loss", "train/alpha_loss",
-            "train/alpha", "train/entropy")}
 
     def evaluate(self, actor_params, key: jax.Array):
         policy = lambda obs: self.sac.act(actor_params, obs, key, deterministic=True)
@@ -133,18 +193,15 @@ class Trainer:
         fn = jax.jit(jax.vmap(self.evaluate))
         return self._aot("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
 
-    def phase_at(self, step: int) -> str:
-        return RANDOM if step < self.cfg.num_seed_steps else SAC_PHASE
 
-    def chunk_plan(self, step: int) -> tuple[str, int]:
-        """Phase and length of the next chunk: never crosses a phase change, evaluation,
-        checkpoint or the end of training."""
-        cfg = self.cfg
-        bounds = [cfg.steps, _next_multiple(step, cfg.chunk_steps),
-                  _next_multiple(step, cfg.eval_every), _next_multiple(step, cfg.checkpoint_every)]
-        if step < cfg.num_seed_steps:
-            bounds.append(cfg.num_seed_steps)
-        return self.phase_at(step), min(bounds) - step
+def make_trainer(cfg: TrainConfig) -> Trainer:
+    if cfg.algo == "sac":
+        return Trainer(cfg)
+    if cfg.algo == "pebble":
+        from hprior_jax.pebble.trainer import PebbleTrainer
+
+        return PebbleTrainer(cfg)
+    raise ValueError(f"unknown algorithm {cfg.algo!r}")
 
 
 def _next_multiple(step: int, every: int) -> int:
@@ -160,7 +217,7 @@ class TrainingDiverged(RuntimeError):
 
 def _finite_or_raise(metrics: dict, step0: int, step1: int, seeds, run_dir, last_ckpt):
     for name, value in metrics.items():
-        if name.startswith("train/"):
+        if name.startswith(("train/", "reward/")):
             bad = ~np.all(np.isfinite(np.asarray(value)), axis=tuple(range(1, np.ndim(value))))
             if bad.any():
                 which = [s for s, b in zip(seeds, bad) if b]
@@ -219,7 +276,7 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
     from hprior_jax.run_log import RunLog
 
     run_dir = Path(run_dir)
-    trainer = Trainer(cfg)
+    trainer = make_trainer(cfg)
     seeds = list(cfg.seeds)
     ckpt = Checkpointer(run_dir / "checkpoints")
     step = 0
@@ -236,15 +293,23 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
     last_ckpt = step
     bar = _progress_bar(cfg.steps, step, progress)
     chunks = 0
+    events = set(trainer.event_steps())
     try:
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
+            compiled_before = set(trainer.compile_seconds)
+            if step in events:  # e.g. a PEBBLE feedback round: before this step's update
+                rs, event_metrics = trainer.run_event(rs, step)
+                event_metrics = jax.device_get(event_metrics)
+                _finite_or_raise(event_metrics, step, step, seeds, run_dir, last_ckpt)
+                for i, s in enumerate(seeds):
+                    log.log(step, s, {k: np.asarray(v)[i] for k, v in event_metrics.items()})
             phase, length = trainer.chunk_plan(step)
             t0 = time.perf_counter()
-            compiled_before = set(trainer.compile_seconds)
             rs, metrics = trainer.run_chunk(rs, step, length)
             metrics = jax.device_get(metrics)
-            if phase == RANDOM:  # no updates ran: drop the placeholder losses
-                metrics = {k: v for k, v in metrics.items() if not k.startswith("train/")}
+            keep = trainer.phase_metrics(phase)  # drop placeholders of other phases
+            metrics = {k: v for k, v in metrics.items()
+                       if not k.startswith("train/") or k in keep}
             _finite_or_raise(metrics, step, step + length, seeds, run_dir, last_ckpt)
             compile_s = sum(v for k, v in trainer.compile_seconds.items()
                             if k not in compiled_before)
@@ -268,9 +333,11 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
                 log.flush()
                 ckpt.save(step, rs)
                 last_ckpt = step
+            log.flush()  # a crash or kill loses at most the chunk in flight
             for name in sorted(set(trainer.compile_seconds) - compiled_before):
                 bar.write(f"compiled {name} in {trainer.compile_seconds[name]:.1f} s "
-                          "(once per shape; not counted in env steps/s)")
+                          "(once per shape; not counted in env steps/s)", file=sys.stdout)
+                sys.stdout.flush()
             bar.update(length)
             bar.set_description(f"{perf['perf/env_steps_per_s']:.0f} env steps/s")
     finally:
