@@ -128,7 +128,9 @@ class QuadrupedWalk(DMControlTask):
     def non_contacting_height(self, quat: jax.Array) -> jax.Array:
         """z that dm_control's `_find_non_contacting_height` picks for `quat` (closed form)."""
         data = mjx.make_data(self.model)
-        qpos = data.qpos.at[self._root_qpos + 3 : self._root_qpos + 7].set(quat)
+        r = self._root_qpos
+        # root at the origin (qpos0 holds the XML's torso height, dm_control overwrites it)
+        qpos = data.qpos.at[r : r + 3].set(0.0).at[r + 3 : r + 7].set(quat)
         data = mjx.kinematics(self.model, data.replace(qpos=qpos))
         depth = self._floor_penetration(data)
         k = jnp.maximum(jnp.floor(depth / HEIGHT_STEP) + 1, 0.0)
