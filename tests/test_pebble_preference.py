@@ -46,8 +46,9 @@ def test_ensemble_shapes_and_torch_init():
 def test_member_forward_matches_numpy():
     cfg = re.RewardConfig(hidden_sizes=(8, 8), ensemble_size=2)
     p = re.init_reward_ensemble(jax.random.key(1), DS, DA, cfg)
-    obs = np.asarray(jax.random.normal(jax.random.key(2), (5, DS)))
-    act = np.asarray(jax.random.normal(jax.random.key(3), (5, DA)))
+    rng = np.random.default_rng(2)
+    obs = rng.normal(size=(5, DS)).astype(np.float32)
+    act = rng.normal(size=(5, DA)).astype(np.float32)
     d = jax.tree_util.tree_map(np.asarray, p["params"])
     out = np.asarray(jax.jit(partial(re.member_rewards, cfg=cfg))(p, obs, act))
     for m in range(2):
@@ -92,7 +93,7 @@ def test_bt_loss_matches_numpy(margin):
 
 def test_preference_loss_uses_segment_sums():
     p = re.init_reward_ensemble(jax.random.key(0), DS, DA, SMALL)
-    b = _random_batch(jax.random.key(1), 7)
+    b = _random_batch(1, 7)
     loss, aux = jax.jit(partial(P.preference_loss, reward_cfg=SMALL))(p, b)
     mr = jax.jit(partial(re.member_rewards, cfg=SMALL))
     r = lambda o, a: np.asarray(mr(p, o, a)).sum(-1)
@@ -104,18 +105,20 @@ def test_preference_loss_uses_segment_sums():
 
 
 # ---------------------------------------------------------------- training schedule
-@partial(jax.jit, static_argnums=(1, 2))
-def _random_batch(key, n, t=H):
-    k1, k2, k3, k4, k5 = jax.random.split(key, 5)
-    return ps.PreferenceBatch(obs1=jax.random.normal(k1, (n, t, DS)), act1=jax.random.normal(k2, (n, t, DA)),
-                              obs2=jax.random.normal(k3, (n, t, DS)), act2=jax.random.normal(k4, (n, t, DA)),
-                              labels=jax.random.randint(k5, (n,), -1, 2))
+# Test data comes from NumPy: every distinct jax.random shape costs a ~1 s threefry compile on CPU.
+def _random_batch(seed, n, t=H):
+    rng = np.random.default_rng(seed)
+    f = lambda *shape: jnp.asarray(rng.normal(size=shape).astype(np.float32))
+    return ps.PreferenceBatch(obs1=f(n, t, DS), act1=f(n, t, DA), obs2=f(n, t, DS), act2=f(n, t, DA),
+                              labels=jnp.asarray(rng.integers(-1, 2, size=n), jnp.int32))
 
 
-@partial(jax.jit, static_argnums=(1, 2))
-def _filled_store(key, n, capacity):
+_add = jax.jit(ps.add)
+
+
+def _filled_store(seed, n, capacity):
     st = ps.init(H, DS, DA, capacity=capacity)
-    return ps.add(st, _random_batch(key, n), jnp.ones(n, bool))
+    return _add(st, _random_batch(seed, n), jnp.ones(n, bool))
 
 
 def test_member_permutations():
@@ -129,7 +132,7 @@ def test_epoch_matches_unpadded_reference_loop():
     """Masked, padded, jitted epoch == BPref's loop over real minibatches (last one short)."""
     cfg = P.PreferenceConfig(batch_size=16, lr=1e-3)
     count, cap = 37, 50  # 3 minibatches: 16, 16, 5
-    st = _filled_store(jax.random.key(3), count, cap)
+    st = _filled_store(3, count, cap)
     tx = P.make_optimizer(cfg)
     p0 = re.init_reward_ensemble(jax.random.key(4), DS, DA, SMALL)
     key = jax.random.key(5)
@@ -159,34 +162,37 @@ def test_epoch_matches_unpadded_reference_loop():
     np.testing.assert_allclose(m["loss"], np.mean(losses), rtol=1e-5)
 
 
+# One compiled train_reward shared by the schedule tests (compile time dominates these tests).
+CFG_T = P.PreferenceConfig(batch_size=16, max_epochs=2)
+TX_T = P.make_optimizer(CFG_T)
+_train_fn = partial(P.train_reward, tx=TX_T, reward_cfg=SMALL, cfg=CFG_T)
+_train = jax.jit(_train_fn)
+CAP_T = 48
+
+
 def test_train_reward_max_epochs_and_empty_store():
-    cfg = P.PreferenceConfig(batch_size=16, max_epochs=3)
-    tx = P.make_optimizer(cfg)
     p0 = re.init_reward_ensemble(jax.random.key(0), DS, DA, SMALL)
-    fn = jax.jit(lambda p, o, s, k: P.train_reward(p, o, s, k, tx=tx, reward_cfg=SMALL, cfg=cfg))
-    st = _filled_store(jax.random.key(1), 40, 64)  # random labels: never 97 % accurate in 3 epochs
-    _, o, m = fn(p0, tx.init(p0), st, jax.random.key(2))
-    assert int(m["reward/epochs"]) == 3 and int(o[0].count) == 3 * 3
+    st = _filled_store(1, 40, CAP_T)  # random labels: never 97 % accurate in 2 epochs
+    _, o, m = _train(p0, TX_T.init(p0), st, jax.random.key(2))
+    assert int(m["reward/epochs"]) == 2 and int(o[0].count) == 2 * 3  # 3 minibatches per epoch
     assert m["reward/train_acc_member"].shape == (3,)
-    empty = ps.init(H, DS, DA, capacity=64)
-    p_e, _, m_e = fn(p0, tx.init(p0), empty, jax.random.key(2))
+    empty = ps.init(H, DS, DA, capacity=CAP_T)
+    p_e, _, m_e = _train(p0, TX_T.init(p0), empty, jax.random.key(2))
     assert int(m_e["reward/epochs"]) == 0
     for a, b in zip(jax.tree_util.tree_leaves(p_e), jax.tree_util.tree_leaves(p0)):
         np.testing.assert_array_equal(a, b)
 
 
-@partial(jax.jit, static_argnums=(1, 2))
-def _probe_data(key, n, t=10):
+def _probe_data(n, t=10):
     """Random segments whose true reward is the first obs coordinate, a 0/1 indicator (think
-    "in the goal region"); the other obs and action entries are N(0, 1) distractors."""
-    k1, k2, k3, k4, k5 = jax.random.split(key, 5)
-    o1, o2 = jax.random.normal(k1, (n, t, DS)), jax.random.normal(k2, (n, t, DS))
-    ind = jax.random.bernoulli(k5, 0.5, (2, n, t)).astype(jnp.float32)
-    o1, o2 = o1.at[..., 0].set(ind[0]), o2.at[..., 0].set(ind[1])
-    a1, a2 = jax.random.normal(k3, (n, t, DA)), jax.random.normal(k4, (n, t, DA))
-    out = T.teacher_labels(key, o1[..., 0], o2[..., 0], T.ORACLE)
-    tie = o1[..., 0].sum(-1) == o2[..., 0].sum(-1)
-    return ps.PreferenceBatch(o1, a1, o2, a2, out.labels), ~tie
+    "in the goal region"); the other obs and action entries are N(0, 1) distractors.
+    Labels come from the oracle teacher."""
+    b = _random_batch(0, n, t)
+    ind = np.random.default_rng(1).integers(0, 2, size=(2, n, t)).astype(np.float32)
+    o1, o2 = b.obs1.at[..., 0].set(ind[0]), b.obs2.at[..., 0].set(ind[1])
+    out = jax.jit(T.teacher_labels)(jax.random.key(0), o1[..., 0], o2[..., 0])
+    tie = ind[0].sum(-1) == ind[1].sum(-1)
+    return b.replace(obs1=o1, obs2=o2, labels=out.labels), jnp.asarray(~tie)
 
 
 def test_probe_learns_known_reward_and_stops_early():
@@ -199,18 +205,20 @@ def test_probe_learns_known_reward_and_stops_early():
     Ties (equal true returns) are labelled 0 by the oracle and cannot be learned, so the probe
     stores only untied pairs, which also exercises the store's valid mask.
     """
-    cfg = P.PreferenceConfig(batch_size=128, max_epochs=100, lr=1e-3)
-    rcfg = re.RewardConfig(hidden_sizes=(32, 32))
+    cfg = P.PreferenceConfig(batch_size=128, max_epochs=60, lr=3e-3)
+    rcfg = SMALL
     tx = P.make_optimizer(cfg)
-    train, untied = _probe_data(jax.random.key(0), 800)
-    st = jax.jit(ps.add)(ps.init(10, DS, DA, capacity=800), train, untied)
-    assert int(st.count) == int(untied.sum()) < 800
+    data, untied = _probe_data(1800)
+    train = jax.tree_util.tree_map(lambda x: x[:800], data)
+    st = _add(ps.init(10, DS, DA, capacity=800), train, untied[:800])
+    assert int(st.count) == int(untied[:800].sum()) < 800
     p0 = re.init_reward_ensemble(jax.random.key(1), DS, DA, rcfg)
     p, _, m = jax.jit(lambda p, o, s, k: P.train_reward(p, o, s, k, tx=tx, reward_cfg=rcfg, cfg=cfg))(
         p0, tx.init(p0), st, jax.random.key(2))
     epochs = int(m["reward/epochs"])
     assert 1 <= epochs < cfg.max_epochs and float(m["reward/train_acc"]) > 0.97  # early stop fired
-    test, test_untied = _probe_data(jax.random.key(9), 1000)
+    test = jax.tree_util.tree_map(lambda x: x[800:], data)  # held-out pairs
+    test_untied = untied[800:]
     ret = jax.jit(partial(P.segment_returns, reward_cfg=rcfg))
     pred = np.asarray(ret(p, test.obs2, test.act2).mean(0) > ret(p, test.obs1, test.act1).mean(0))
     truth = np.asarray(test.obs2[..., 0].sum(-1) > test.obs1[..., 0].sum(-1))
@@ -219,17 +227,14 @@ def test_probe_learns_known_reward_and_stops_early():
 
 
 def test_train_reward_vmaps_over_seeds():
-    cfg = P.PreferenceConfig(batch_size=16, max_epochs=2)
-    tx = P.make_optimizer(cfg)
-    stores = [_filled_store(jax.random.key(i), n, 48) for i, n in ((0, 40), (1, 17))]
+    stores = [_filled_store(i, n, CAP_T) for i, n in ((0, 40), (1, 17))]
     params = [re.init_reward_ensemble(jax.random.key(10 + i), DS, DA, SMALL) for i in range(2)]
     keys = jax.random.split(jax.random.key(7), 2)
-    fn = lambda p, s, k: P.train_reward(p, tx.init(p), s, k, tx=tx, reward_cfg=SMALL, cfg=cfg)
     stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)
-    pv, _, mv = jax.jit(jax.vmap(fn))(stack(params), stack(stores), keys)
-    fn_j = jax.jit(fn)
+    pv, _, mv = jax.jit(jax.vmap(_train_fn))(stack(params), stack([TX_T.init(p) for p in params]),
+                                             stack(stores), keys)
     for i in range(2):
-        pi, _, mi = fn_j(params[i], stores[i], keys[i])
+        pi, _, mi = _train(params[i], TX_T.init(params[i]), stores[i], keys[i])
         for a, b in zip(jax.tree_util.tree_leaves(pv), jax.tree_util.tree_leaves(pi)):
             np.testing.assert_allclose(a[i], b, rtol=1e-4, atol=1e-6)
         np.testing.assert_allclose(mv["reward/train_acc"][i], mi["reward/train_acc"], rtol=1e-6)

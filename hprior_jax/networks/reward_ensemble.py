@@ -15,6 +15,7 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 Params = Any
 
@@ -89,9 +90,23 @@ def init_reward_ensemble(key: jax.Array, obs_size: int, act_size: int,
     """Stacked params of K independent members; every leaf has a leading axis K."""
     net = RewardNet(cfg)
     dummy = jnp.zeros((1, obs_size + act_size), jnp.float32)
-    keys = jax.random.split(key, cfg.ensemble_size)
-    # jit: one compiled program instead of dozens of eager ops when called outside jit.
-    return jax.jit(jax.vmap(net.init, in_axes=(0, None)))(keys, dummy)
+    # Same distribution as net.init (every kernel and bias ~ U(±1/sqrt(fan_in)), see
+    # torch_kernel_init/torch_bias_init) but from ONE uniform draw for the whole ensemble: each
+    # threefry call site costs ~1 s of XLA compile on CPU, and flax's init makes two per layer.
+    shapes = jax.eval_shape(net.init, jax.random.key(0), dummy)
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(shapes)
+    sizes = [cfg.ensemble_size * int(np.prod(leaf.shape)) for _, leaf in leaves]
+    u = jax.random.uniform(key, (sum(sizes),), jnp.float32, -1.0, 1.0)
+    fan_in = {}
+    for path, leaf in leaves:  # Dense layer name -> fan_in (kernel is [fan_in, fan_out])
+        if path[-1].key == "kernel":
+            fan_in[path[-2].key] = leaf.shape[0]
+    out, offset = [], 0
+    for (path, leaf), size in zip(leaves, sizes):
+        bound = 1.0 / np.sqrt(fan_in[path[-2].key])
+        out.append(bound * u[offset:offset + size].reshape((cfg.ensemble_size,) + leaf.shape))
+        offset += size
+    return jax.tree_util.tree_unflatten(treedef, out)
 
 
 def member_rewards(params: Params, obs: jax.Array, act: jax.Array,
