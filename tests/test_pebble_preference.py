@@ -85,6 +85,11 @@ def test_bt_loss_matches_numpy(margin):
     pred = (r2 > r1).astype(int)
     np.testing.assert_array_equal(correct, ((pred == np.maximum(labels, 0)) & mask).sum(-1))
     np.testing.assert_array_equal(n, [13] * 3)
+    # jit + vmap over a leading batch axis gives the same numbers
+    f = jax.jit(jax.vmap(partial(P.bt_loss_from_returns, label_margin=margin)))
+    loss_v = f(jnp.stack([r1, r2]), jnp.stack([r2, r1]), jnp.stack([labels, labels]), jnp.stack([mask, mask]))[0]
+    np.testing.assert_allclose(loss_v[0], ref, rtol=1e-5)
+    np.testing.assert_allclose(loss_v[1], _np_bt(r2, r1, labels, mask, margin)[0], rtol=1e-5)
     # masked pairs do not matter
     r1b = r1.copy(); r1b[:, 13:] = 1e3
     loss_b = P.bt_loss_from_returns(jnp.asarray(r1b), jnp.asarray(r2), jnp.asarray(labels), jnp.asarray(mask), margin)[0]

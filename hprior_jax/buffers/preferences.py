@@ -7,6 +7,12 @@ preferred, -1 = "equally preferable" (trained on a 0.5/0.5 target).
 
 Only segment observations/actions and labels are kept; the teacher's true rewards never enter
 this store (the reward learner must not see `true_*` quantities).
+
+Memory: the store holds 2 x capacity x H x (ds + da) float32 (BPref's 5e5 pairs, H = 50, walker
+ds + da = 30: 6 GB, per seed on device). Since it is never reset and a run can label at most
+`max_feedback` pairs, passing capacity = max_feedback gives identical training at a fraction of
+the memory; training cost scales with `count`, not capacity, except one O(capacity) argsort per
+member per epoch.
 """
 from __future__ import annotations
 
