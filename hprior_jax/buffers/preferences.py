@@ -10,7 +10,7 @@ this store (the reward learner must not see `true_*` quantities).
 
 Memory: the store holds 2 x capacity x H x (ds + da) float32 (BPref's 5e5 pairs, H = 50, walker
 ds + da = 30: 6 GB, per seed on device). Since it is never reset and a run can label at most
-`max_feedback` pairs, passing capacity = max_feedback gives identical training at a fraction of
+`max_feedback` pairs, capacity = max_feedback trains the same (up to the shuffle stream) at a fraction of
 the memory; training cost scales with `count`, not capacity, except one O(capacity) argsort per
 member per epoch.
 """
