@@ -47,7 +47,21 @@ class ToyNaN(ToyPoint):
         return state.replace(true_reward=state.true_reward * jnp.nan)
 
 
+class ToyScaled(ToyPoint):
+    """ToyPoint with the true reward scaled by 3: an oracle teacher gives the same labels, so
+    a PbRL run that never lets the true reward reach the agent must not change at all."""
+
+    name = "toy_scaled"
+
+    def step(self, state, action):
+        state = super().step(state, action)
+        return state.replace(true_reward=3.0 * state.true_reward)
+
+
+ALL_TOY_TASKS = (ToyPoint, ToyNaN, ToyScaled)
+
+
 def ensure_registered():
-    for cls in (ToyPoint, ToyNaN):
+    for cls in ALL_TOY_TASKS:
         if cls.name not in tasks.names():
             tasks.register(cls.name, cls)
