@@ -171,6 +171,7 @@ def scripted_success(task, name: str, episodes: int, seed: int = 0, batch: int =
             obs, _, _, _, info = env.step(np.clip(policy.get_action(obs), -1, 1))
             s = max(s, float(info["success"]))
         mw.append(s)
+    batch = min(batch, episodes)
     reset = jax.jit(jax.vmap(task.reset))
     step = jax.jit(jax.vmap(task.step))
     port = []

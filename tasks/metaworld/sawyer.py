@@ -381,7 +381,9 @@ class SawyerTask(Task):
         info = {"init_tcp": jnp.asarray(self._settled["init_tcp"], jnp.float32)}
         data, placed = self._place(key, data)
         info.update(placed)
-        data = mjx.forward(self.model_for(info), data)
+        # positions only: obs and episode constants read nothing else, and mjx.step recomputes
+        # every derived quantity from qpos/qvel (cheaper to compile and to auto-reset)
+        data = mjx.kinematics(self.model_for(info), data)
         info = self._after_forward(data, info)
         curr = self.current_obs(data)
         info["prev_obs"] = curr  # metaworld v3 reset: obs[18:36] = obs[:18]
