@@ -12,10 +12,19 @@ import sys
 import warnings
 
 FLAG = "--xla_cpu_use_fusion_emitters=false"
+# Eigen's multi-threaded matmuls inside XLA CPU control flow (our training chunk: a scan with
+# a cond that holds the SAC update) deadlocked every time with 2 vmapped seeds on cheetah
+# (jax/jaxlib 0.10.2, 2-core machine): the program compiled, then sat at 0% CPU forever.
+# With Eigen single-threaded the same program runs in 0.1 s. XLA still parallelises across
+# its own thunks; see benchmarks/ for the measured cost on single-seed updates.
+NO_EIGEN_THREADS = "--xla_cpu_multi_thread_eigen=false"
 
 
 def ensure_xla_flags() -> None:
     flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_multi_thread_eigen" not in flags:
+        flags = (flags + " " + NO_EIGEN_THREADS).strip()
+        os.environ["XLA_FLAGS"] = flags
     if "xla_cpu_use_fusion_emitters" not in flags:
         if "jax" in sys.modules and "jax._src.xla_bridge" in sys.modules:
             warnings.warn(

@@ -1,9 +1,7 @@
 """Test configuration: XLA flag before jax, persistent compilation cache, small shapes."""
 import os
 
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
-).strip()
+from tasks import _xla_flags  # noqa: E402,F401  (XLA_FLAGS before jax; see that module)
 os.environ.setdefault("MUJOCO_GL", "disable")
 
 import jax  # noqa: E402
