@@ -9,8 +9,9 @@ from typing import Literal
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.pebble.config import PebbleConfig
 from hprior_jax.pebble.teacher import TeacherConfig
+from hprior_jax.prior.config import PriorRunConfig
 
-ALGORITHMS = ("sac", "pebble")  # grows with the PbRL algorithms (prior, surf, ...)
+ALGORITHMS = ("sac", "pebble", "prior")  # grows with the PbRL baselines (surf, rune, ...)
 PRESETS = ("paper", "reduced", "smoke")
 
 
@@ -40,6 +41,8 @@ class TrainConfig:
     sac: SACConfig = field(default_factory=SACConfig)
     pebble: PebbleConfig = field(default_factory=PebbleConfig)
     """Preference learning (used by --algo pebble and the methods built on it)."""
+    prior: PriorRunConfig = field(default_factory=PriorRunConfig)
+    """Hindsight PRIOR's world model and prior loss (used by --algo prior)."""
 
     def __post_init__(self):
         if self.algo not in ALGORITHMS:
@@ -77,5 +80,6 @@ class TrainConfig:
         pebble = dict(d.get("pebble", {}))
         pebble["teacher"] = TeacherConfig(**pebble.get("teacher", {}))
         d["pebble"] = PebbleConfig(**pebble)
+        d["prior"] = PriorRunConfig(**d.get("prior", {}))
         d["seeds"] = tuple(d["seeds"])
         return TrainConfig(**d)

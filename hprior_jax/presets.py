@@ -10,6 +10,7 @@ from __future__ import annotations
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import PRESETS, TrainConfig
 from hprior_jax.pebble.config import PebbleConfig
+from hprior_jax.prior.config import PriorRunConfig
 
 # appendix Table 2: SAC learning rate per task (MetaWorld: 3e-4)
 SAC_LR = {"cheetah_run": 1e-3, "walker_walk": 5e-4, "quadruped_walk": 1e-4}
@@ -64,6 +65,8 @@ def train_preset(task: str, algo: str = "sac", preset: str = "paper", **override
     cfg.update(common)
     if algo != "sac":
         cfg.update(pbrl_overrides(task, preset, cfg["sac"], episode))
+    if algo == "prior":
+        cfg["prior"] = prior_config(task, preset)
     cfg.update(overrides)
     return TrainConfig(**cfg)
 
@@ -90,6 +93,23 @@ def pbrl_overrides(task: str, preset: str, sac: SACConfig, episode: int) -> dict
                           queries_per_round=10, reward_epochs=10, reset_update=20,
                           segment_len=min(50, episode // 2))
     return dict(num_seed_steps=episode, pebble=pebble, sac=sac)
+
+
+# the world model at the paper's size (TWM: 10 layers x 256) costs seconds per update on a CPU;
+# the CPU presets shrink it and keep the schedule (j = 2000) and the loss
+REDUCED_WORLD_MODEL = dict(wm_embed=64, wm_layers=2, wm_heads=2, wm_head_dim=32, wm_ff=256,
+                           wm_obs_hidden=256, wm_head_hidden=256, wm_head_depth=2, wm_batch=32,
+                           wm_pretrain_steps=300, wm_update_steps=30)
+SMOKE_WORLD_MODEL = dict(wm_embed=32, wm_layers=1, wm_heads=2, wm_head_dim=16, wm_ff=64,
+                         wm_obs_hidden=64, wm_obs_depth=1, wm_head_hidden=64, wm_head_depth=1,
+                         wm_batch=8, wm_pretrain_steps=10, wm_update_steps=2)
+
+
+def prior_config(task: str, preset: str) -> PriorRunConfig:
+    """λ from appendix Table 4 (5 DMC, 1000 MetaWorld); world-model size per preset."""
+    lam = 5.0 if _domain(task) == "dm_control" else 1000.0
+    sizes = {"paper": {}, "reduced": REDUCED_WORLD_MODEL, "smoke": SMOKE_WORLD_MODEL}[preset]
+    return PriorRunConfig(lam=lam, **sizes)
 
 
 def _episode_length(task: str) -> int:

@@ -201,6 +201,10 @@ def make_trainer(cfg: TrainConfig) -> Trainer:
         from hprior_jax.pebble.trainer import PebbleTrainer
 
         return PebbleTrainer(cfg)
+    if cfg.algo == "prior":
+        from hprior_jax.prior.trainer import PriorTrainer
+
+        return PriorTrainer(cfg)
     raise ValueError(f"unknown algorithm {cfg.algo!r}")
 
 

@@ -95,12 +95,21 @@ def preference_loss(params: Params, batch: PreferenceBatch, mask: jax.Array | No
     return loss, {"per_member_loss": per_member, "accuracy": correct / jnp.maximum(n, 1.0)}
 
 
-def _member_batch_loss(params, batch: PreferenceBatch, mask, reward_cfg, label_margin):
-    """Per-member minibatches: every batch leaf has a leading K axis ([K, b, T, ...])."""
-    r1 = per_member_rewards(params, batch.obs1, batch.act1, reward_cfg).sum(-1)
-    r2 = per_member_rewards(params, batch.obs2, batch.act2, reward_cfg).sum(-1)
-    loss, per_member, correct, n = bt_loss_from_returns(r1, r2, batch.labels, mask, label_margin)
-    return loss, (per_member, correct, n)
+def _member_batch_loss(params, batch: PreferenceBatch, mask, reward_cfg, label_margin,
+                       extra_loss=None, extra_batch=None):
+    """Per-member minibatches: every batch leaf has a leading K axis ([K, b, T, ...]).
+
+    `extra_loss(step_r1[K, b, T], step_r2[K, b, T], extra_batch, mask) -> scalar` is added to the
+    BT loss (hook for auxiliary reward losses such as PRIOR's); with it, the aux tuple gains its
+    value as a 4th entry. Without it the computation is PEBBLE's."""
+    s1 = per_member_rewards(params, batch.obs1, batch.act1, reward_cfg)
+    s2 = per_member_rewards(params, batch.obs2, batch.act2, reward_cfg)
+    loss, per_member, correct, n = bt_loss_from_returns(s1.sum(-1), s2.sum(-1), batch.labels, mask,
+                                                        label_margin)
+    if extra_loss is None:
+        return loss, (per_member, correct, n)
+    extra = extra_loss(s1, s2, extra_batch, mask)
+    return loss + extra, (per_member, correct, n, extra)
 
 
 def member_permutations(key: jax.Array, count: jax.Array, capacity: int, ensemble_size: int) -> jax.Array:
@@ -117,13 +126,17 @@ def member_permutations(key: jax.Array, count: jax.Array, capacity: int, ensembl
 
 def train_epoch(params: Params, opt_state: Any, store: PreferenceStore, key: jax.Array, *,
                 tx: optax.GradientTransformation, reward_cfg: RewardConfig = RewardConfig(),
-                cfg: PreferenceConfig = PreferenceConfig()):
+                cfg: PreferenceConfig = PreferenceConfig(), extra_loss=None, extra_data=None):
     """One pass over the `store.count` stored pairs in ceil(count/batch_size) minibatches.
 
     Returns (params, opt_state, metrics) with metrics:
       accuracy [K]: per-member fraction of correct predictions over the epoch's minibatches
                     (BPref `ensemble_acc / total`, predictions taken before each step);
       loss: mean over minibatches of Σ_members batch-mean CE. With count == 0 nothing changes.
+    Optional hook (see `_member_batch_loss`): `extra_data` is a pytree whose leaves have the
+    store's leading capacity axis; each minibatch gets its rows with the same per-member indices
+    ([K, b, ...]) and `extra_loss` is added to the loss; metrics then also hold "extra_loss"
+    (mean over minibatches). Both None = PEBBLE.
     """
     k = reward_cfg.ensemble_size
     cap = store.capacity
@@ -135,51 +148,63 @@ def train_epoch(params: Params, opt_state: Any, store: PreferenceStore, key: jax
     grad_fn = jax.grad(_member_batch_loss, has_aux=True)
 
     def body(i, carry):
-        params, opt_state, correct, total, loss_sum = carry
+        params, opt_state, correct, total, loss_sum, extra_sum = carry
         start = i * bs
         idx = jax.lax.dynamic_slice_in_dim(perm, start, bs, axis=1)  # [K, bs]
         mask = (start + jnp.arange(bs)) < store.count  # [bs]
         batch = PreferenceBatch(obs1=store.obs1[idx], act1=store.act1[idx], obs2=store.obs2[idx],
                                 act2=store.act2[idx], labels=store.labels[idx])
-        grads, (per_member, c, n) = grad_fn(params, batch, mask, reward_cfg, cfg.label_margin)
+        extra_batch = None if extra_data is None else jax.tree.map(lambda x: x[idx], extra_data)
+        grads, aux = grad_fn(params, batch, mask, reward_cfg, cfg.label_margin, extra_loss, extra_batch)
+        per_member, c, n = aux[:3]
         updates, opt_state = tx.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
-        return params, opt_state, correct + c, total + n, loss_sum + per_member.sum()
+        extra_sum = extra_sum + aux[3] if extra_loss is not None else extra_sum
+        return params, opt_state, correct + c, total + n, loss_sum + per_member.sum(), extra_sum
 
     zeros = jnp.zeros((k,), jnp.float32)
-    params, opt_state, correct, total, loss_sum = jax.lax.fori_loop(
-        0, n_batches, body, (params, opt_state, zeros, zeros, jnp.zeros((), jnp.float32)))
-    metrics = {"accuracy": correct / jnp.maximum(total, 1.0),
-               "loss": loss_sum / jnp.maximum(n_batches, 1).astype(jnp.float32)}
+    scalar = jnp.zeros((), jnp.float32)
+    params, opt_state, correct, total, loss_sum, extra_sum = jax.lax.fori_loop(
+        0, n_batches, body, (params, opt_state, zeros, zeros, scalar, scalar))
+    denom = jnp.maximum(n_batches, 1).astype(jnp.float32)
+    metrics = {"accuracy": correct / jnp.maximum(total, 1.0), "loss": loss_sum / denom}
+    if extra_loss is not None:
+        metrics["extra_loss"] = extra_sum / denom
     return params, opt_state, metrics
 
 
 def train_reward(params: Params, opt_state: Any, store: PreferenceStore, key: jax.Array, *,
                  tx: optax.GradientTransformation, reward_cfg: RewardConfig = RewardConfig(),
-                 cfg: PreferenceConfig = PreferenceConfig()):
+                 cfg: PreferenceConfig = PreferenceConfig(), extra_loss=None, extra_data=None):
     """PEBBLE's reward update for one query round: up to `cfg.max_epochs` epochs, stopping after
     the first epoch whose mean accuracy over members exceeds `cfg.acc_threshold` (lax.while_loop).
 
     Returns (params, opt_state, metrics) with metrics "reward/epochs" (int32), "reward/train_acc"
     (mean over members, last epoch), "reward/train_acc_member" [K], "reward/loss" (last epoch).
-    With an empty store, no epoch runs (epochs = 0, accuracy 0).
+    With an empty store, no epoch runs (epochs = 0, accuracy 0). `extra_loss`/`extra_data`: the
+    auxiliary-loss hook of `train_epoch`; with it, metrics also hold "reward/extra_loss" (last epoch).
     """
     k = reward_cfg.ensemble_size
 
     def cond(c):
-        epoch, _, _, _, acc, _ = c
+        epoch, _, _, _, acc, _, _ = c
         return (epoch < cfg.max_epochs) & (acc.mean() <= cfg.acc_threshold) & (store.count > 0)
 
     def body(c):
-        epoch, params, opt_state, key, _, _ = c
+        epoch, params, opt_state, key, _, _, _ = c
         key, sub = jax.random.split(key)
         params, opt_state, m = train_epoch(params, opt_state, store, sub, tx=tx,
-                                           reward_cfg=reward_cfg, cfg=cfg)
-        return epoch + 1, params, opt_state, key, m["accuracy"], m["loss"]
+                                           reward_cfg=reward_cfg, cfg=cfg, extra_loss=extra_loss,
+                                           extra_data=extra_data)
+        extra = m.get("extra_loss", jnp.zeros((), jnp.float32))
+        return epoch + 1, params, opt_state, key, m["accuracy"], m["loss"], extra
 
+    scalar = jnp.zeros((), jnp.float32)
     init = (jnp.zeros((), jnp.int32), params, opt_state, key, jnp.zeros((k,), jnp.float32),
-            jnp.zeros((), jnp.float32))
-    epochs, params, opt_state, _, acc, loss = jax.lax.while_loop(cond, body, init)
+            scalar, scalar)
+    epochs, params, opt_state, _, acc, loss, extra = jax.lax.while_loop(cond, body, init)
     metrics = {"reward/epochs": epochs, "reward/train_acc": acc.mean(),
                "reward/train_acc_member": acc, "reward/loss": loss}
+    if extra_loss is not None:
+        metrics["reward/extra_loss"] = extra
     return params, opt_state, metrics

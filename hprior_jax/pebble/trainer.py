@@ -156,10 +156,8 @@ class PebbleTrainer(Trainer):
         keep = out.valid & pairs.mask
         prefs = preferences.add(ext.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
-        params, opt, rmetrics = train_reward(ext.reward, ext.reward_opt, prefs, k_reward,
-                                             tx=self.reward_tx, reward_cfg=self.reward_cfg,
-                                             cfg=self.pref_cfg)
-        reward = relabel_rewards(params, buf.obs, buf.action, buf.reward, buf.size,
+        ext, rmetrics = self._train_reward(ext.replace(prefs=prefs), k_reward)
+        reward = relabel_rewards(ext.reward, buf.obs, buf.action, buf.reward, buf.size,
                                  reward_cfg=self.reward_cfg)
         buf = buf.replace(reward=reward)
         sac = rs.sac
@@ -172,13 +170,20 @@ class PebbleTrainer(Trainer):
             "feedback/equal": jnp.sum(keep & out.equal).astype(jnp.float32),
             "feedback/mistakes": jnp.sum(keep & out.mistake & ~out.equal).astype(jnp.float32),
             "feedback/total_labeled": prefs.count.astype(jnp.float32),
-            "reward/epochs": rmetrics["reward/epochs"].astype(jnp.float32),
-            "reward/train_acc": rmetrics["reward/train_acc"],
-            "reward/loss": rmetrics["reward/loss"],
             "reward/true_corr": masked_correlation(reward, buf.true_reward, buf.size),
+            **rmetrics,
         }
-        ext = ext.replace(reward=params, reward_opt=opt, prefs=prefs)
         return rs.replace(sac=sac, replay=buf, extra=ext, key=key), metrics
+
+    def _train_reward(self, ext: PebbleState, key: jax.Array):
+        """The reward-ensemble update of a round on every stored pair (`ext.prefs`).
+        -> (ext with the new reward params and optimiser state, scalar `reward/` metrics)."""
+        params, opt, m = train_reward(ext.reward, ext.reward_opt, ext.prefs, key,
+                                      tx=self.reward_tx, reward_cfg=self.reward_cfg,
+                                      cfg=self.pref_cfg)
+        metrics = {"reward/epochs": m["reward/epochs"].astype(jnp.float32),
+                   "reward/train_acc": m["reward/train_acc"], "reward/loss": m["reward/loss"]}
+        return ext.replace(reward=params, reward_opt=opt), metrics
 
     def _reset_critic_and_update(self, sac_state, buf, key):
         """BPref `reset_critic` + `update_after_reset`: target EMA when index % 2 == 0."""
