@@ -32,7 +32,7 @@ from hprior_jax.prior.attention import pair_credit
 from hprior_jax.prior.loss import PairCredit, target_saturation, train_reward_with_prior, variant_alpha
 from hprior_jax.train import RunState
 
-WM_METRICS = ("prior/wm_dyn_loss", "prior/wm_latent_loss", "prior/wm_next_obs_loss")
+_WM_STREAM = 0x574D  # fold_in tag of the world model's random stream
 
 
 @struct.dataclass
@@ -63,23 +63,23 @@ class PriorTrainer(PebbleTrainer):
         return sorted(set(super().event_steps()) | set(self.wm_steps()))
 
     # -- per-seed pure functions -----------------------------------------------------------
+    # World-model randomness is folded out of the keys PEBBLE uses, never split from them, so
+    # every PEBBLE draw is unchanged: with λ = 0 a PRIOR run trains exactly PEBBLE's agent.
     def _init_extra(self, key):
-        k_pebble, k_wm = jax.random.split(key)
-        base = super()._init_extra(k_pebble)
+        base = super()._init_extra(key)
         return PriorState(**{f: getattr(base, f) for f in base.__dataclass_fields__},
-                          wm=wm.init(k_wm, self.wm_cfg),
+                          wm=wm.init(jax.random.fold_in(key, _WM_STREAM), self.wm_cfg),
                           credit=PairCredit.uniform(self.pcfg.max_feedback, self.pcfg.segment_len))
 
     def train_world_model(self, rs: RunState, *, pretrain: bool):
         """Pre-training: observation and dynamics model; later: dynamics only (appendix C.3)."""
-        key, sub = jax.random.split(rs.key)
         p = self.prior_cfg
         state, metrics = wm.train(
-            rs.extra.wm, sub, rs.replay.obs, rs.replay.action, rs.replay.size, cfg=self.wm_cfg,
-            episode_len=self.env.episode_length,
+            rs.extra.wm, jax.random.fold_in(rs.key, _WM_STREAM), rs.replay.obs, rs.replay.action,
+            rs.replay.size, cfg=self.wm_cfg, episode_len=self.env.episode_length,
             num_steps=p.wm_pretrain_steps if pretrain else p.wm_update_steps,
             observation_model=pretrain, dynamics_model=True)
-        return rs.replace(extra=rs.extra.replace(wm=state), key=key), metrics
+        return rs.replace(extra=rs.extra.replace(wm=state)), metrics
 
     def _train_reward(self, ext: PriorState, key: jax.Array):
         """CE + λ·L_prior on every stored pair, α from the current world model."""

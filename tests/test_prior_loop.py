@@ -1,0 +1,113 @@
+"""Hindsight PRIOR on the training loop (toy task): schedule, λ = 0 is PEBBLE, logs, resume."""
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from hprior_jax import presets, train
+from hprior_jax.agents.sac import SACConfig
+
+SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2,
+             steps=100, seeds=(7,))
+
+
+def _cfg(tmp_path, name, algo="prior", lam=5.0, **kw):
+    cfg = presets.train_preset("toy_point", algo, "smoke", out=str(tmp_path / name), **{**SMALL, **kw})
+    # toy episodes are 20 steps: a dynamics update every 60 steps (after the pre-training at 40)
+    return dataclasses.replace(cfg, prior=dataclasses.replace(cfg.prior, lam=lam, wm_every=60))
+
+
+def _records(run_dir):
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def _run(cfg, **kw):
+    return train.run(cfg, train.prepare_run_dir(cfg), progress=False, **kw)
+
+
+def test_world_model_schedule(tmp_path):
+    trainer = train.make_trainer(_cfg(tmp_path, "s", steps=200))
+    # feedback rounds as PEBBLE; the world model pre-trains at the first round (seed + unsup
+    # = 40), then the dynamics model trains at every multiple of j = 60 after it
+    assert trainer.rounds() == [(40, 10), (80, 10), (120, 10), (160, 10)]
+    assert trainer.wm_steps() == [40, 60, 120, 180]
+    assert trainer.event_steps() == [40, 60, 80, 120, 160, 180]
+    rvar = _cfg(tmp_path, "r", steps=200)
+    rvar = dataclasses.replace(rvar, prior=dataclasses.replace(rvar.prior, variant="rvar"))
+    assert train.make_trainer(rvar).wm_steps() == []  # uniform α: no world model to train
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("prior")
+    out = {}
+    for name, algo, lam in (("pebble", "pebble", 0.0), ("prior_lam0", "prior", 0.0),
+                            ("prior", "prior", 5.0)):
+        cfg = _cfg(tmp, name, algo=algo, lam=lam)
+        out[name] = (cfg, _run(cfg), tmp / name)
+    return out
+
+
+def _agent(rs):
+    return jax.tree.leaves((rs.sac, rs.extra.reward, rs.replay.reward))
+
+
+def test_lambda_zero_trains_exactly_pebbles_agent(runs):
+    """Same seeds, λ = 0: the prior term adds exactly zero, and the world model draws its random
+    numbers from a folded-off stream, so the agent and reward model match PEBBLE's (to float
+    rounding of two differently compiled programs)."""
+    (_, pebble, _), (_, lam0, _), (_, prior, _) = runs["pebble"], runs["prior_lam0"], runs["prior"]
+    for a, b in zip(_agent(pebble), _agent(lam0)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    # λ = 5 changes the reward model (the prior loss reaches the ensemble)
+    r_pebble, r_prior = (np.concatenate([np.ravel(x) for x in jax.tree.leaves(rs.extra.reward)])
+                         for rs in (pebble, prior))
+    assert np.abs(r_pebble - r_prior).max() > 1e-3
+
+
+def test_prior_logs_world_model_and_credit_diagnostics(runs):
+    cfg, rs, run_dir = runs["prior"]
+    records = _records(run_dir)
+    rounds = [r for r in records if "feedback/queries" in r]
+    assert [r["step"] for r in rounds] == [40, 80]
+    for r in rounds:
+        assert 0.0 < r["prior/attention_entropy"] <= 1.0 + 1e-6
+        assert 0.0 <= r["prior/target_out_of_range"] <= 1.0
+        assert r["prior/loss"] >= 0.0 and "reward/true_corr" in r
+    wm = [r for r in records if "prior/wm_dyn_loss" in r]
+    assert [r["step"] for r in wm] == [40, 60]
+    assert "prior/wm_obs_loss" in wm[0] and "prior/wm_obs_loss" not in wm[1]  # dynamics only
+    assert all(r["perf/world_model_s"] > 0 for r in wm)
+    # the world model trained: its step counters are in the RunState
+    assert int(np.asarray(rs.extra.wm.obs_steps)[0]) == cfg.prior.wm_pretrain_steps
+    assert int(np.asarray(rs.extra.wm.dyn_steps)[0]) == (cfg.prior.wm_pretrain_steps
+                                                         + cfg.prior.wm_update_steps)
+    # α of every stored pair is a distribution over the segment
+    count = int(np.asarray(rs.extra.prefs.count)[0])
+    alpha = np.asarray(rs.extra.credit.alpha1[0, :count])
+    np.testing.assert_allclose(alpha.sum(-1), 1.0, atol=1e-5)
+    assert (alpha >= 0).all()
+
+
+def test_prior_resume_equals_uninterrupted(runs, tmp_path):
+    cfg, full, _ = runs["prior"]
+    cfg = dataclasses.replace(cfg, out=str(tmp_path / "split"))
+    run_dir = train.prepare_run_dir(cfg)
+    train.run(cfg, run_dir, progress=False, max_chunks=3)  # stops after the first round
+    resumed = train.run(train.load_run_config(run_dir), run_dir, resume=True, progress=False)
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_prior_config_errors(tmp_path):
+    with pytest.raises(ValueError, match="variant"):
+        presets.PriorRunConfig(variant="bogus")
+    with pytest.raises(ValueError, match="--prior.lam"):
+        presets.PriorRunConfig(lam=-1.0)
+    with pytest.raises(ValueError, match="rvar"):
+        presets.PriorRunConfig(wm_pretrain_steps=0)
+    cfg = presets.train_preset("cheetah_run", "prior", "paper")
+    assert cfg.prior.lam == 5.0 and cfg.prior.wm_layers == 10 and cfg.prior.wm_every == 2000
+    assert presets.train_preset("drawer_open", "prior", "paper").prior.lam == 1000.0
