@@ -3,6 +3,7 @@
     hprior train --task cheetah_run --algo sac --preset smoke
     hprior train --task cheetah_run --seeds 12345 23456 --steps 100000 --sac.lr 3e-4
     hprior train --resume runs/cheetah_run_sac_20261122-101500
+    hprior attention --run runs/cheetah_run_prior_20261122-101500 --pair 3
     hprior tasks
 """
 from __future__ import annotations
@@ -15,8 +16,9 @@ from tasks import _xla_flags  # noqa: F401  (before anything imports jax)
 USAGE = """usage: hprior COMMAND [ARGS]
 
 commands:
-  train    train an agent (hprior train --help for every option)
-  tasks    list the registered tasks
+  train      train an agent (hprior train --help for every option)
+  attention  world-model attention maps of a trained --algo prior run
+  tasks      list the registered tasks
 """
 
 
@@ -83,6 +85,23 @@ def _drop_option(argv: list[str], name: str) -> list[str]:
     return out
 
 
+def _attention(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="hprior attention",
+        description="Attention of the world model's final step over a stored preference "
+                    "segment (layers x time, state and action tokens), as appendix Figure 8.")
+    parser.add_argument("--run", required=True, help="run directory of an --algo prior run")
+    parser.add_argument("--pair", type=int, default=0, help="index of the stored labelled pair")
+    parser.add_argument("--seed", type=int, default=None, help="which of the run's seeds")
+    parser.add_argument("--out", default=None, help="folder for the PNGs (default RUN/attention)")
+    args = parser.parse_args(argv)
+    from hprior_jax.prior.attention_map import attention_maps_for_run
+
+    for path in attention_maps_for_run(args.run, pair=args.pair, seed=args.seed, out=args.out):
+        print(path)
+    return 0
+
+
 def _tasks(argv: list[str]) -> int:
     from hprior_jax.envs import task_names
 
@@ -96,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         print(USAGE)
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
-    commands = {"train": _train, "tasks": _tasks}
+    commands = {"train": _train, "attention": _attention, "tasks": _tasks}
     if command not in commands:
         print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         return 2

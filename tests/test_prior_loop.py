@@ -111,3 +111,19 @@ def test_prior_config_errors(tmp_path):
     cfg = presets.train_preset("cheetah_run", "prior", "paper")
     assert cfg.prior.lam == 5.0 and cfg.prior.wm_layers == 10 and cfg.prior.wm_every == 2000
     assert presets.train_preset("drawer_open", "prior", "paper").prior.lam == 1000.0
+
+
+def test_attention_maps_from_a_trained_run(runs, tmp_path):
+    from hprior_jax import cli
+    from hprior_jax.prior.attention_map import attention_maps_for_run
+
+    _, _, run_dir = runs["prior"]
+    out = tmp_path / "maps"
+    assert cli.main(["attention", "--run", str(run_dir), "--pair", "3", "--out", str(out)]) == 0
+    pngs = sorted(out.glob("*.png"))
+    assert [p.name for p in pngs] == ["seed7_pair3_seg1.png", "seed7_pair3_seg2.png"]
+    assert all(p.stat().st_size > 5000 for p in pngs)
+    with pytest.raises(ValueError, match="choose 0..19"):
+        attention_maps_for_run(run_dir, pair=20)
+    with pytest.raises(ValueError, match="world model"):
+        attention_maps_for_run(runs["pebble"][2])
