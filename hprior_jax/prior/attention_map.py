@@ -44,6 +44,7 @@ def plot_attention_map(rows: np.ndarray, alpha: np.ndarray, out_png: Path, title
                            (axes[1], "action tokens", rows[:, 1::2])):
         im = ax.imshow(part, aspect="auto", cmap="viridis", vmin=0, vmax=vmax,
                        extent=(-0.5, t - 0.5, layers - 0.5, -0.5))
+        ax.set_yticks(range(layers))
         ax.set_ylabel(f"layer\n({name})")
     fig.colorbar(im, ax=axes[:2].tolist(), label="attention of the final step")
     axes[2].bar(np.arange(t), alpha, color="tab:orange", label="α (mean over layers)")
@@ -53,7 +54,7 @@ def plot_attention_map(rows: np.ndarray, alpha: np.ndarray, out_png: Path, title
         ax2.set_ylabel("true reward")
     axes[2].set_xlabel("time step in segment")
     axes[2].set_ylabel("α")
-    axes[0].set_title(title)
+    fig.suptitle(title)
     out_png = Path(out_png)
     fig.savefig(out_png, dpi=120, bbox_inches="tight")
     plt.close(fig)
