@@ -221,7 +221,7 @@ class TrainingDiverged(RuntimeError):
 
 def _finite_or_raise(metrics: dict, step0: int, step1: int, seeds, run_dir, last_ckpt):
     for name, value in metrics.items():
-        if name.startswith(("train/", "reward/")):
+        if name.startswith(("train/", "reward/", "prior/")):
             bad = ~np.all(np.isfinite(np.asarray(value)), axis=tuple(range(1, np.ndim(value))))
             if bad.any():
                 which = [s for s, b in zip(seeds, bad) if b]
