@@ -12,11 +12,10 @@ import sys
 import warnings
 
 FLAG = "--xla_cpu_use_fusion_emitters=false"
-# Eigen's multi-threaded matmuls inside XLA CPU control flow (our training chunk: a scan with
-# a cond that holds the SAC update) deadlocked every time with 2 vmapped seeds on cheetah
-# (jax/jaxlib 0.10.2, 2-core machine): the program compiled, then sat at 0% CPU forever.
-# With Eigen single-threaded the same program runs in 0.1 s. XLA still parallelises across
-# its own thunks; see benchmarks/ for the measured cost on single-seed updates.
+# Single-threaded Eigen inside XLA CPU. Added while chasing a hang of 2-seed training runs
+# whose real cause was batched LAPACK QR in the vmapped orthogonal init (fixed in
+# hprior_jax/networks/mlp.py; this flag did not prevent it). Kept because every test and
+# measurement so far ran with it; its speed cost has not been measured yet (issue 8 note).
 NO_EIGEN_THREADS = "--xla_cpu_multi_thread_eigen=false"
 
 

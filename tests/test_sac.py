@@ -110,3 +110,19 @@ def test_config_rejects_bad_sizes_with_the_flag_name():
         SACConfig(hidden_dim=0)
     with pytest.raises(ValueError, match="--sac.tau"):
         SACConfig(tau=0.0)
+
+
+def test_vmapped_init_keeps_every_qr_unbatched():
+    """Seeds are vmapped, so a plain orthogonal init becomes batched LAPACK QR calls, which
+    jaxlib splits over XLA's intra-op pool and which hung 2-seed runs on a 2-core machine
+    (hprior_jax/networks/mlp.py). Every QR in the lowered program must be unbatched."""
+    import re
+
+    sac = SAC(5, 2, CFG)
+    text = jax.jit(jax.vmap(sac.init)).lower(jax.random.split(jax.random.PRNGKey(0), 2)).as_text()
+    qr_calls = [l for l in text.splitlines() if re.search(r"lapack_\w*(geqrf|orgqr)", l)]
+    assert qr_calls, "orthogonal init no longer uses QR: update this test"
+    assert all('num_batch_dims = "0"' in l for l in qr_calls), qr_calls[:2]
+    w = jax.vmap(sac.init)(jax.random.split(jax.random.PRNGKey(0), 2)).critic
+    kernel = jax.tree.leaves(w)[1]  # a hidden layer kernel of seed 0 and 1
+    assert not np.allclose(np.asarray(kernel[0]), np.asarray(kernel[1]))
