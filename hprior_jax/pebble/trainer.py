@@ -181,9 +181,7 @@ class PebbleTrainer(Trainer):
         params, opt, m = train_reward(ext.reward, ext.reward_opt, ext.prefs, key,
                                       tx=self.reward_tx, reward_cfg=self.reward_cfg,
                                       cfg=self.pref_cfg)
-        metrics = {"reward/epochs": m["reward/epochs"].astype(jnp.float32),
-                   "reward/train_acc": m["reward/train_acc"], "reward/loss": m["reward/loss"]}
-        return ext.replace(reward=params, reward_opt=opt), metrics
+        return ext.replace(reward=params, reward_opt=opt), reward_round_metrics(m)
 
     def _reset_critic_and_update(self, sac_state, buf, key):
         """BPref `reset_critic` + `update_after_reset`: target EMA when index % 2 == 0."""
@@ -207,6 +205,12 @@ class PebbleTrainer(Trainer):
         n = np.int32(rounds[step])
         name = "feedback_round/first" if first else "feedback_round"
         return self._aot(name, fn, rs, n)(rs, n)
+
+
+def reward_round_metrics(m: dict) -> dict:
+    """The scalar `reward/` metrics logged per round from `train_reward`'s output."""
+    return {"reward/epochs": m["reward/epochs"].astype(jnp.float32),
+            "reward/train_acc": m["reward/train_acc"], "reward/loss": m["reward/loss"]}
 
 
 def masked_correlation(x: jax.Array, y: jax.Array, n: jax.Array) -> jax.Array:

@@ -26,7 +26,7 @@ import numpy as np
 from flax import struct
 
 from hprior_jax.networks.reward_ensemble import member_rewards
-from hprior_jax.pebble.trainer import PebbleState, PebbleTrainer
+from hprior_jax.pebble.trainer import PebbleState, PebbleTrainer, reward_round_metrics
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import pair_credit
 from hprior_jax.prior.loss import PairCredit, target_saturation, train_reward_with_prior, variant_alpha
@@ -83,13 +83,14 @@ class PriorTrainer(PebbleTrainer):
 
     def _train_reward(self, ext: PriorState, key: jax.Array):
         """CE + λ·L_prior on every stored pair, α from the current world model."""
-        credit = (pair_credit(ext.wm.params, ext.prefs, self.wm_cfg, query=self.prior_cfg.attention_query,
-                              credit=ext.credit) if self.uses_world_model else None)
+        credit = None
+        if self.uses_world_model:
+            credit = pair_credit(ext.wm.params, ext.prefs, self.wm_cfg, credit=ext.credit,
+                                 query=self.prior_cfg.attention_query)
         params, opt, m = train_reward_with_prior(
             ext.reward, ext.reward_opt, ext.prefs, credit, key, tx=self.reward_tx,
             reward_cfg=self.reward_cfg, cfg=self.pref_cfg, prior_cfg=self.loss_cfg)
-        metrics = {"reward/epochs": m["reward/epochs"].astype(jnp.float32),
-                   "reward/train_acc": m["reward/train_acc"], "reward/loss": m["reward/loss"],
+        metrics = {**reward_round_metrics(m),
                    "prior/loss": m["reward/extra_loss"] / max(self.loss_cfg.lam, 1e-12)}
         if credit is not None:
             metrics.update(self._credit_diagnostics(params, ext.prefs, credit))
