@@ -30,12 +30,21 @@ from tasks.metaworld.reference import make_env, metaworld_version, scripted_poli
 
 TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_parity.csv")
+# scripted policies that steer by the goal slots obs[36:39] (metaworld runs its policies on
+# goal-observable envs); with the default hidden goal they head for (0, 0, 0). For these the
+# policy is given the goal: metaworld env built goal-observable, port obs filled from info.
+POLICY_READS_GOAL = ("sweep_into",)
+
+
+def policy_env(name: str, seed: int):
+    """The metaworld env whose observations the scripted policy is run on."""
+    return make_env(name, seed=seed, partially_observable=name not in POLICY_READS_GOAL)
 
 
 def collect_metaworld_states(name: str, n_episodes: int, steps: int, seed: int, noise: float):
     """Runs metaworld (scripted policy + Gaussian noise, and pure random episodes) and
     records everything needed to rebuild each visited state in the port."""
-    env = make_env(name, seed=seed)
+    env = policy_env(name, seed)
     policy = scripted_policy(name)
     rng = np.random.default_rng(seed)
     rows = []
@@ -76,7 +85,7 @@ def port_eval_fn(task):
 def reward_parity(task, name: str, n_episodes: int = 6, steps: int = 150, seed: int = 0,
                   noise: float = 0.3):
     """Max |difference| of obs[:18] and reward, and success agreement, on metaworld states."""
-    env = make_env(name, seed=seed)
+    env = policy_env(name, seed)
     policy = scripted_policy(name)
     rng = np.random.default_rng(seed)
     datas, prevs, actions, infos, mw = [], [], [], [], []
@@ -126,7 +135,7 @@ def state_from_metaworld(task, env, obs):
 def drift(task, name: str, mode: str, seed: int = 0, steps: int = 500):
     """Same start, same actions: metaworld C vs port. `scripted` actions are computed from
     metaworld's observations and replayed on the port (open loop)."""
-    env = make_env(name, seed=seed)
+    env = policy_env(name, seed)
     obs, _ = env.reset()
     state = state_from_metaworld(task, env, obs)
     rng = np.random.default_rng(seed)
@@ -161,7 +170,7 @@ def drift(task, name: str, mode: str, seed: int = 0, steps: int = 500):
 def scripted_success(task, name: str, episodes: int, seed: int = 0, batch: int = 25):
     """Any-step success rate of metaworld's scripted policy, closed loop, on `episodes`
     random resets of metaworld (C) and of the port (its own reset distribution)."""
-    env = make_env(name, seed=seed)
+    env = policy_env(name, seed)
     policy = scripted_policy(name)
     mw = []
     for _ in range(episodes):
@@ -183,6 +192,8 @@ def scripted_success(task, name: str, episodes: int, seed: int = 0, batch: int =
         succ = np.zeros(batch)
         for _ in range(task.episode_length):
             obs = np.asarray(st.obs, np.float64)
+            if name in POLICY_READS_GOAL:
+                obs[:, 36:39] = np.asarray(st.info["target_pos"])
             act = np.stack([np.clip(policy.get_action(o), -1, 1) for o in obs]).astype(np.float32)
             st = step(st, jnp.asarray(act))
             succ = np.maximum(succ, np.asarray(st.success))

@@ -54,10 +54,10 @@ for _name, _module, _cls in (("cheetah_run", "cheetah", "CheetahRun"),
                              ("quadruped_walk", "quadruped", "QuadrupedWalk")):
     register(_name, _lazy(f"dm_control.{_module}", _cls))
 
-# MetaWorld v3 ports (tasks/metaworld/); sweep_into is not ported yet
+# MetaWorld v3 ports (tasks/metaworld/)
 for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress"),
                     ("door_open", "DoorOpen"), ("window_open", "WindowOpen"),
-                    ("door_unlock", "DoorUnlock")):
+                    ("door_unlock", "DoorUnlock"), ("sweep_into", "SweepInto")):
     register(_name, _lazy(f"metaworld.{_name}", _cls))
 
 __all__ = ["Task", "TaskState", "make", "names", "register"]

@@ -65,6 +65,9 @@ def make_env(task: str, seed: int = 0, partially_observable: bool = True):
     env._set_task_called = True
     env.seeded_rand_vec = True
     env._partially_observable = partially_observable
+    # the observation space (and so the clip of the goal slots in `step`) is a cached_property
+    # that construction already computed with the default; drop it as metaworld's set_task does
+    env.__dict__.pop("sawyer_observation_space", None)
     env.seed(seed)
     return env
 

@@ -99,7 +99,8 @@ class SceneSpec:
     # object geoms the gripper may touch: (body name, geom index within the body or None = all
     # collision geoms of that body); each gets a pair with each of the 4 gripper geoms
     object_geoms: tuple = ()
-    # extra explicit pairs between named object geoms (e.g. puck <-> table)
+    # extra explicit pairs between object geoms (e.g. puck <-> table); each side is a geom
+    # name or (body name, index among that body's collision geoms) for unnamed geoms
     extra_pairs: tuple = ()
     placed_body: str | None = None  # body metaworld moves at reset via model.body_pos
     # visual (mesh) geoms an observation reads, e.g. the door "handle": they are deleted but
@@ -128,17 +129,23 @@ def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
         b.inertia = full.body_inertia[bid]
 
     # pairs: gripper geoms x object geoms
+    def collision_geoms(body_name):
+        bid = full.body(body_name).id
+        return [g for g in range(full.ngeom) if full.geom_bodyid[g] == bid
+                and (full.geom_contype[g] or full.geom_conaffinity[g])]
+
     pair_names = []
     for body_name, index in scene.object_geoms:
-        bid = full.body(body_name).id
-        gids = [g for g in range(full.ngeom) if full.geom_bodyid[g] == bid
-                and (full.geom_contype[g] or full.geom_conaffinity[g])]
+        gids = collision_geoms(body_name)
         if index is not None:
             gids = [gids[i] for i in index]
         for og in gids:
             for hg in GRIPPER_GEOMS:
                 pair_names.append((hg, full.geom(og).name))
-    pair_names += list(scene.extra_pairs)
+    for pair in scene.extra_pairs:
+        pair_names.append(tuple(
+            n if isinstance(n, str) else full.geom(collision_geoms(n[0])[n[1]]).name
+            for n in pair))
 
     # re-root the hand: copy its subtree from a second spec onto a world frame, delete the arm
     donor = mujoco.MjSpec.from_file(path)
@@ -275,6 +282,8 @@ class SawyerTask(Task):
                                         + [np.zeros(3) if partially_observable else goal_high])
         self._settled = self._settle_hand()
         # metaworld reads init_left/right_pad once at construction, with the *arm* at qpos0
+        # (they are views of data.xpos, so inside metaworld they later track the current pads:
+        # a reward that reads them must use the current pads, see sweep_into._caging)
         full = load_full_model(self.scene.xml)
         fd = mujoco.MjData(full)
         mujoco.mj_forward(full, fd)

@@ -11,7 +11,8 @@ import pytest
 import tasks
 from tasks.physics import mjx
 
-PORTED = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock")
+PORTED = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock",
+          "sweep_into")
 BATCH, HORIZON = 2, 4
 
 
