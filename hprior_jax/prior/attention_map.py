@@ -46,7 +46,10 @@ def plot_attention_map(rows: np.ndarray, alpha: np.ndarray, out_png: Path, title
                        extent=(-0.5, t - 0.5, layers - 0.5, -0.5))
         ax.set_yticks(range(layers))
         ax.set_ylabel(f"layer\n({name})")
-    fig.colorbar(im, ax=axes[:2].tolist(), label="attention of the final step")
+    # The colorbar takes its width from all three panels so that the heat maps and
+    # the α bars keep one time axis.
+    fig.colorbar(im, ax=axes.tolist(), shrink=0.55, anchor=(0.0, 1.0),
+                 label="attention of the final step")
     axes[2].bar(np.arange(t), alpha, color="tab:orange", label="α (mean over layers)")
     if true_reward is not None:
         ax2 = axes[2].twinx()
