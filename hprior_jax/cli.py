@@ -4,6 +4,8 @@
     hprior train --task cheetah_run --seeds 12345 23456 --steps 100000 --sac.lr 3e-4
     hprior train --resume runs/cheetah_run_sac_20261122-101500
     hprior attention --run runs/cheetah_run_prior_20261122-101500 --pair 3
+    hprior grid --tasks cheetah_run --algos sac pebble prior --budget reduced --out results
+    hprior report results
     hprior tasks
 """
 from __future__ import annotations
@@ -18,6 +20,8 @@ USAGE = """usage: hprior COMMAND [ARGS]
 commands:
   train      train an agent (hprior train --help for every option)
   attention  world-model attention maps of a trained --algo prior run
+  grid       every (task, algorithm) with its seeds; skips finished runs, resumes the rest
+  report     Tables 6-7, paired t-tests, learning curves of a grid's results directory
   tasks      list the registered tasks
 """
 
@@ -102,6 +106,63 @@ def _attention(argv: list[str]) -> int:
     return 0
 
 
+def _grid(argv: list[str]) -> int:
+    from hprior_jax.experiments.grid import PAPER_SEEDS
+
+    parser = argparse.ArgumentParser(
+        prog="hprior grid",
+        description="Run every (task, algorithm) with its seeds vmapped in one process into "
+                    "OUT/<task>/<algo>/. Re-running the same command skips complete runs and "
+                    "resumes interrupted ones.")
+    parser.add_argument("--tasks", nargs="+", required=True)
+    parser.add_argument("--algos", nargs="+", default=["sac", "pebble", "prior"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(PAPER_SEEDS))
+    parser.add_argument("--budget", default="reduced", choices=("paper", "reduced", "smoke"),
+                        help="the preset of every run (see README: Presets)")
+    parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
+    parser.add_argument("--eval-every", type=int, default=None)
+    parser.add_argument("--out", required=True, help="results directory")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    from hprior_jax.experiments.grid import run_grid
+    from hprior_jax.setup_jax import enable_compilation_cache
+
+    overrides = {k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
+                 if v is not None}
+    enable_compilation_cache()
+    run_grid(args.out, args.tasks, args.algos, args.seeds, args.budget, overrides,
+             progress=not args.no_progress)
+    print(f"grid complete in {args.out}; make the tables with `hprior report {args.out}`")
+    return 0
+
+
+def _report(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="hprior report",
+        description="Tables 6-7 (normalized scores), paired t-tests, learning curves, reward "
+                    "correlation and attention maps of a results directory.")
+    parser.add_argument("root", help="results directory of `hprior grid`")
+    parser.add_argument("--out", default=None, help="report folder (default ROOT/report)")
+    parser.add_argument("--normalize", default="mean-of-ratios",
+                        choices=("mean-of-ratios", "ratio-of-means"))
+    parser.add_argument("--min-reference", type=float, default=0.0,
+                        help="leave out evaluation steps where SAC scores at most this")
+    parser.add_argument("--pair-by-seed", action="store_true",
+                        help="normalize each seed by the SAC run of the same seed")
+    parser.add_argument("--t-test-over", default="task", choices=("task", "seed"),
+                        help="t-test pairs: per-task means (appendix F) or (task, seed) scores")
+    parser.add_argument("--no-attention", action="store_true",
+                        help="skip the attention maps (they restore PRIOR checkpoints)")
+    args = parser.parse_args(argv)
+    from hprior_jax.experiments.report import make_report
+
+    path = make_report(args.root, args.out, args.normalize, args.min_reference,
+                       args.pair_by_seed, args.t_test_over, attention=not args.no_attention)
+    print(path.read_text())
+    print(f"report written to {path.parent}")
+    return 0
+
+
 def _tasks(argv: list[str]) -> int:
     from hprior_jax.envs import task_names
 
@@ -115,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
         print(USAGE)
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
-    commands = {"train": _train, "attention": _attention, "tasks": _tasks}
+    commands = {"train": _train, "attention": _attention, "grid": _grid, "report": _report,
+                "tasks": _tasks}
     if command not in commands:
         print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         return 2

@@ -1,0 +1,1 @@
+"""Experiment grids and the paper-style report (appendix D-F)."""
