@@ -8,6 +8,7 @@ so per-step decisions derived from it (target-network EMA, episode ends) stay sc
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import sys
@@ -301,33 +302,28 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
     try:
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(trainer.compile_seconds)
+            timer = _WallTimer(trainer.compile_seconds)  # wall time per part, compiles apart
             if step in events:  # e.g. a PEBBLE feedback round: before this step's update
-                rs, event_metrics = trainer.run_event(rs, step)
-                event_metrics = jax.device_get(event_metrics)
+                with timer("event_s"):
+                    rs, event_metrics = trainer.run_event(rs, step)
+                    event_metrics = jax.device_get(event_metrics)
                 _finite_or_raise(event_metrics, step, step, seeds, run_dir, last_ckpt)
                 for i, s in enumerate(seeds):
                     log.log(step, s, {k: np.asarray(v)[i] for k, v in event_metrics.items()})
             phase, length = trainer.chunk_plan(step)
-            t0 = time.perf_counter()
-            rs, metrics = trainer.run_chunk(rs, step, length)
-            metrics = jax.device_get(metrics)
+            with timer("chunk_s"):  # env steps and agent updates: one fused program
+                rs, metrics = trainer.run_chunk(rs, step, length)
+                metrics = jax.device_get(metrics)
             keep = trainer.phase_metrics(phase)  # drop placeholders of other phases
             metrics = {k: v for k, v in metrics.items()
                        if not k.startswith("train/") or k in keep}
             _finite_or_raise(metrics, step, step + length, seeds, run_dir, last_ckpt)
-            compile_s = sum(v for k, v in trainer.compile_seconds.items()
-                            if k not in compiled_before)
-            run_s = time.perf_counter() - t0 - compile_s
             _log_chunk(log, seeds, step, metrics, has_success)
             step += length
             chunks += 1
-            perf = {"perf/env_steps_per_s": length * len(seeds) / max(run_s, 1e-9)}
-            if compile_s:
-                perf["perf/compile_s"] = compile_s
-            for s in seeds:
-                log.log(step, s, perf)
             if step % cfg.eval_every == 0 or step == cfg.steps:
-                returns, successes = jax.device_get(trainer.run_eval(rs, seeds, step))
+                with timer("eval_s"):
+                    returns, successes = jax.device_get(trainer.run_eval(rs, seeds, step))
                 for i, s in enumerate(seeds):
                     log.log_eval(step, s, float(np.mean(returns[i])),
                                  float(np.mean(successes[i])) if has_success else None)
@@ -335,8 +331,14 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
             if step % cfg.checkpoint_every == 0 or step == cfg.steps or (
                     max_chunks is not None and chunks == max_chunks):
                 log.flush()
-                ckpt.save(step, rs)
+                with timer("checkpoint_s"):
+                    ckpt.save(step, rs)
                 last_ckpt = step
+            perf = {"perf/env_steps_per_s": length * len(seeds) / max(timer.seconds["chunk_s"],
+                                                                      1e-9)}
+            perf.update({f"perf/{k}": v for k, v in timer.seconds.items() if v or k == "chunk_s"})
+            for s in seeds:
+                log.log(step, s, perf)
             log.flush()  # a crash or kill loses at most the chunk in flight
             for name in sorted(set(trainer.compile_seconds) - compiled_before):
                 bar.write(f"compiled {name} in {trainer.compile_seconds[name]:.1f} s "
@@ -352,6 +354,24 @@ def run(cfg: TrainConfig, run_dir: Path, resume: bool = False, progress: bool = 
         plot_learning_curve(run_dir / "eval.csv", run_dir / "learning_curve.png",
                             title=f"{cfg.algo} on {cfg.task}")
     return rs
+
+
+class _WallTimer:
+    """Wall seconds per named part of one loop iteration, less any compile that happened
+    inside it (`compile_seconds` is the trainer's dict of program -> compile time, which
+    grows when a new program is compiled); compile time is summed under `compile_s`."""
+
+    def __init__(self, compile_seconds: dict):
+        self.compile_seconds = compile_seconds
+        self.seconds = {"compile_s": 0.0}
+
+    @contextlib.contextmanager
+    def __call__(self, part: str):
+        before, t0 = set(self.compile_seconds), time.perf_counter()
+        yield
+        compiled = sum(v for k, v in self.compile_seconds.items() if k not in before)
+        self.seconds["compile_s"] += compiled
+        self.seconds[part] = self.seconds.get(part, 0.0) + time.perf_counter() - t0 - compiled
 
 
 def _log_chunk(log, seeds, step0: int, metrics: dict, has_success: bool) -> None:

@@ -15,7 +15,10 @@ FLAG = "--xla_cpu_use_fusion_emitters=false"
 # Single-threaded Eigen inside XLA CPU. Added while chasing a hang of 2-seed training runs
 # whose real cause was batched LAPACK QR in the vmapped orthogonal init (fixed in
 # hprior_jax/networks/mlp.py; this flag did not prevent it). Kept because every test and
-# measurement so far ran with it; its speed cost has not been measured yet (issue 8 note).
+# measurement ran with it. It costs nothing measurable on jaxlib 0.10.2: XLA's CPU dots still
+# use both cores with it (a 2048^2 matmul chain runs on 1.94 cores either way), and the SAC
+# update takes the same time with =false and =true (`python -m benchmarks.sac_update`,
+# results/sac_update.csv, column xla_eigen).
 NO_EIGEN_THREADS = "--xla_cpu_multi_thread_eigen=false"
 
 

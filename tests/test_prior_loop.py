@@ -80,6 +80,13 @@ def test_prior_logs_world_model_and_credit_diagnostics(runs):
     assert [r["step"] for r in wm] == [40, 60]
     assert "prior/wm_obs_loss" in wm[0] and "prior/wm_obs_loss" not in wm[1]  # dynamics only
     assert all(r["perf/world_model_s"] > 0 for r in wm)
+    # the host loop times each event (rounds at 40, 80; world model at 40, 60) and logs it
+    # with the perf record of the chunk that follows it
+    seed = records[0]["seed"]
+    timed = [r["step"] for r in records if r["seed"] == seed and "perf/event_s" in r]
+    assert len(timed) == 3
+    for event, logged in zip([40, 60, 80], timed):
+        assert event < logged <= event + cfg.chunk_steps
     # the world model trained: its step counters are in the RunState
     assert int(np.asarray(rs.extra.wm.obs_steps)[0]) == cfg.prior.wm_pretrain_steps
     assert int(np.asarray(rs.extra.wm.dyn_steps)[0]) == (cfg.prior.wm_pretrain_steps

@@ -100,6 +100,13 @@ def test_cli_writes_a_complete_run_directory(tmp_path, capsys):
     records = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines()]
     assert any("train/critic_loss" in r for r in records)
     assert any("perf/env_steps_per_s" in r for r in records)
+    # wall time by part: every chunk, evals at 40 and 60, checkpoints at 40 and 60; the first
+    # chunk and the first eval compiled (their compile is counted apart, not in their part)
+    perf = [r for r in records if r["seed"] == 1 and "perf/chunk_s" in r]
+    assert [r["step"] for r in perf] == [20, 40, 60] and all(r["perf/chunk_s"] > 0 for r in perf)
+    assert [r["step"] for r in perf if "perf/eval_s" in r] == [40, 60]
+    assert [r["step"] for r in perf if "perf/checkpoint_s" in r] == [40, 60]
+    assert perf[0]["perf/compile_s"] > 0 and "perf/event_s" not in perf[0]  # SAC: no events
     assert (out / "learning_curve.png").stat().st_size > 1000
     assert (out / "checkpoints" / "60").exists()
     assert list((out / "tb").glob("seed_1/events.out.tfevents.*"))
