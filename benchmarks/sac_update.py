@@ -26,7 +26,6 @@ on the GPU (PyTorch stays on the CPU as the reference the users have).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
@@ -37,6 +36,8 @@ import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+from benchmarks._timing import (best_seconds, matmul_gflops_s, roofline, torch_reference,
+                                write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sac_update.csv"
 SIZES = {  # name: (obs, action, hidden, depth, batch) from appendix Table 2
@@ -79,12 +80,8 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int) -> dict
     fn = jax.jit(jax.vmap(run)).lower(states, keys).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(fn(states, keys))  # warm-up
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        _, losses = fn(states, keys)
-        jax.block_until_ready(losses)
-        best = min(best, time.perf_counter() - t0)
+    best = best_seconds(lambda: fn(states, keys), repeats, jax.block_until_ready)
+    _, losses = fn(states, keys)
     if not bool(jnp.all(jnp.isfinite(losses))):
         raise RuntimeError(f"JAX SAC produced non-finite losses at {size} sizes")
     one = jax.tree.map(lambda x: x[0], states)
@@ -94,29 +91,6 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int) -> dict
             "device": jax.devices()[0].device_kind,
             "gflop_per_update": xla_gflop(jax.jit(sac.update), one, data, keys[0], 0),
             "matmul_gflops_s": matmul_gflops_s(repeats)}
-
-
-def xla_gflop(fn, *args) -> float:
-    """FLOPs of one call by XLA's cost analysis (one seed, one update)."""
-    cost = fn.lower(*args).compile().cost_analysis()
-    cost = cost[0] if isinstance(cost, list) else cost
-    return cost["flops"] / 1e9
-
-
-def matmul_gflops_s(repeats: int, n: int = 2048) -> float:
-    """What this device sustains on large float32 matmuls: the ceiling for an update whose
-    FLOPs are almost all dense layers."""
-    import jax
-
-    x = jax.random.normal(jax.random.key(0), (n, n))
-    f = jax.jit(lambda a: (a @ a) @ a)
-    jax.block_until_ready(f(x))
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(x))
-        best = min(best, time.perf_counter() - t0)
-    return 2 * 2 * n**3 / best / 1e9
 
 
 def jax_in_child(size: str, n_seeds: int, n_updates: int, repeats: int, eigen: str,
@@ -208,13 +182,8 @@ def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
         return critic_loss
 
     update(0)  # warm-up
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for step in range(n_updates):
-            loss = update(step)
-        best = min(best, time.perf_counter() - t0)
-    if not torch.isfinite(loss):
+    best = best_seconds(lambda: [update(step) for step in range(n_updates)], repeats)
+    if not torch.isfinite(update(0)):
         raise RuntimeError("PyTorch SAC produced a non-finite loss")
     return {"ms_per_update": 1e3 * best / n_updates, "threads": torch.get_num_threads(),
             "version": torch.__version__}
@@ -245,11 +214,7 @@ def main(argv=None) -> None:
     for size in args.sizes:
         ref = None
         if not args.no_torch:
-            try:
-                ref = torch_update_ms(size, args.updates, args.repeats)
-            except ImportError:
-                p.error('PyTorch is not installed: pip install -e ".[bench]" -c requirements.lock '
-                        "(or pass --no-torch)")
+            ref = torch_reference(p, torch_update_ms, size, args.updates, args.repeats)
             print(f"{size}: pytorch {ref['version']} ({ref['threads']} threads) "
                   f"{ref['ms_per_update']:.1f} ms/update", flush=True)
         for setting in eigen:
@@ -265,11 +230,8 @@ def main(argv=None) -> None:
                        "torch_ms_per_seed": round(ref["ms_per_update"], 2) if ref else "",
                        "speedup": round(ref["ms_per_update"] / per_seed, 2) if ref else "",
                        "seeds_cost_over_one": "",
-                       "gflop_per_update": round(res["gflop_per_update"], 2),
-                       "jax_gflops_s": round(res["gflop_per_update"] / per_seed * 1e3, 1),
-                       "torch_gflops_s": round(res["gflop_per_update"] / ref["ms_per_update"]
-                                               * 1e3, 1) if ref else "",
-                       "matmul_gflops_s": round(res["matmul_gflops_s"], 1),
+                       **roofline(res["gflop_per_update"], per_seed,
+                                  ref["ms_per_update"] if ref else None, res["matmul_gflops_s"]),
                        "updates": args.updates, "machine": f"{platform.machine()} "
                        f"{os.cpu_count()} cpus"}
                 one = next((r for r in rows if r["sizes"] == size and r["seeds"] == 1
@@ -281,12 +243,7 @@ def main(argv=None) -> None:
                 print("  " + "  ".join(f"{k}={v}" for k, v in row.items()
                                        if k not in ("sizes", "machine", "updates")), flush=True)
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(args.out, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {args.out}")
+    write_rows(rows, args.out)
 
 
 if __name__ == "__main__":

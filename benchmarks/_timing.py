@@ -1,0 +1,75 @@
+"""Helpers every benchmark uses: best-of-N wall time, the CSV writer, FLOPs by XLA cost
+analysis and the matmul rate a device sustains (the roofline an update is read against)."""
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+
+def best_seconds(run: Callable[[], object], repeats: int, wait: Callable = lambda out: out) -> float:
+    """Best of `repeats` wall times of `run()`; `wait(out)` blocks until an asynchronous result
+    is ready (jax.block_until_ready), so dispatch is not mistaken for work."""
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        wait(run())
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def write_rows(rows: list[dict], path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path}")
+
+
+def xla_gflop(fn, *args) -> float:
+    """GFLOPs of one call `fn(*args)` by XLA's cost analysis of the compiled program."""
+    cost = fn.lower(*args).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    return cost["flops"] / 1e9
+
+
+def matmul_gflops_s(repeats: int, n: int = 2048) -> float:
+    """What this device sustains on large float32 matmuls: the ceiling for an update whose
+    FLOPs are almost all dense layers."""
+    import jax
+
+    x = jax.random.normal(jax.random.key(0), (n, n))
+    f = jax.jit(lambda a: (a @ a) @ a)
+    jax.block_until_ready(f(x))
+    best = best_seconds(lambda: f(x), repeats, jax.block_until_ready)
+    return 2 * 2 * n**3 / best / 1e9
+
+
+def select_device(name: str) -> None:
+    """`--device cpu|gpu` for the JAX side (call before any JAX computation)."""
+    import jax
+
+    if name == "cpu":
+        jax.config.update("jax_platforms", "cpu")
+    elif not [d for d in jax.devices() if d.platform == "gpu"]:
+        raise SystemExit('--device gpu: JAX sees no GPU; install CUDA jaxlib with '
+                         'pip install -e ".[cuda]" -c requirements.lock')
+
+
+def torch_reference(parser, measure: Callable, *args):
+    """`measure(*args)` of a PyTorch reference, or stop with the command that installs it."""
+    try:
+        return measure(*args)
+    except ImportError:
+        parser.error('PyTorch is not installed: pip install -e ".[bench]" -c requirements.lock '
+                     "(or pass --no-torch)")
+
+
+def roofline(gflop: float, jax_ms: float, torch_ms: float | None, matmul_gflops: float) -> dict:
+    """CSV columns: work per update and the rate each side reaches against the matmul ceiling."""
+    return {"gflop_per_update": round(gflop, 2), "jax_gflops_s": round(gflop / jax_ms * 1e3, 1),
+            "torch_gflops_s": round(gflop / torch_ms * 1e3, 1) if torch_ms else "",
+            "matmul_gflops_s": round(matmul_gflops, 1)}

@@ -1,0 +1,124 @@
+"""Whole training runs at a fixed small budget: env steps/s, wall time by part, peak memory.
+
+    python -m benchmarks.end_to_end [--algos pebble prior] [--seeds 1 5] [--task cheetah_run]
+                                    [--preset smoke] [--steps N] [--device cpu|gpu]
+
+Each (algorithm, seed count) is one `hprior train` in a child process with an empty
+compilation cache (so compile time is real and reported apart) and `--no-progress`. Its
+`metrics.jsonl` gives the wall seconds the host loop measured per part (`perf/chunk_s`: env
+steps and agent updates, one fused program; `perf/event_s`: feedback rounds = teacher, reward
+learning, relabelling, and for PRIOR the world model, of which `perf/world_model_s`;
+`perf/eval_s`, `perf/checkpoint_s`, `perf/compile_s`); the rest of the child's wall time
+(start-up, imports, building the task) is `other_s`. Peak resident memory is the child's
+max RSS. `prior_overhead` = (PRIOR wall - PEBBLE wall) / PRIOR wall at the same seed count,
+compile excluded. Writes benchmarks/results/end_to_end.csv.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+RESULTS = Path(__file__).resolve().parent / "results" / "end_to_end.csv"
+PARTS = ("chunk_s", "event_s", "world_model_s", "eval_s", "checkpoint_s", "compile_s")
+SEEDS = (12345, 23456, 34567, 45678, 56789, 67890, 78901, 89012)
+
+
+def perf_totals(metrics_file: Path, first_seed: int) -> dict:
+    """Sum of every `perf/<part>` over the run (logged once per seed; read one seed)."""
+    totals = defaultdict(float)
+    steps = 0
+    with open(metrics_file) as f:
+        for line in f:
+            rec = json.loads(line)
+            if rec.get("seed") != first_seed:
+                continue
+            steps = max(steps, rec.get("step", 0))
+            for part in PARTS:
+                if f"perf/{part}" in rec:
+                    totals[part] += float(rec[f"perf/{part}"])
+    return {"steps": steps, **{p: totals[p] for p in PARTS}}
+
+
+def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
+            work: Path, device: str = "cpu") -> dict:
+    run_dir = work / f"{algo}_{n_seeds}"
+    seeds = [str(s) for s in SEEDS[:n_seeds]]
+    cmd = [sys.executable, "-m", "hprior_jax.cli", "train", "--task", task, "--algo", algo,
+           "--preset", preset, "--seeds", *seeds, "--out", str(run_dir), "--no-progress"]
+    if steps is not None:
+        cmd += ["--steps", str(steps)]
+    env = dict(os.environ, HPRIOR_JAX_CACHE=str(work / f"cache_{algo}_{n_seeds}"))
+    if device == "cpu":
+        env["JAX_PLATFORMS"] = "cpu"
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t0 = time.perf_counter()
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stdout[-2000:]}\n{out.stderr[-3000:]}")
+    # ru_maxrss of children is the max over all children so far: exact only if this child
+    # is the largest yet, so runs go in increasing size (seeds ascending) per algorithm
+    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    totals = perf_totals(run_dir / "metrics.jsonl", int(seeds[0]))
+    measured = sum(totals[p] for p in PARTS if p != "world_model_s")  # wm is inside event_s
+    return {"task": task, "algo": algo, "seeds": n_seeds, "preset": preset, "device": device,
+            **totals,
+            "other_s": wall - measured, "wall_s": wall,
+            "env_steps_per_s": totals["steps"] * n_seeds / max(wall - totals["compile_s"], 1e-9),
+            "peak_rss_gb": peak_kb / 2**20 if peak_kb > before else float("nan")}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--task", default="cheetah_run")
+    p.add_argument("--algos", nargs="+", default=["pebble", "prior"],
+                   choices=["sac", "pebble", "prior"])
+    p.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
+    p.add_argument("--preset", default="smoke", choices=["smoke", "reduced", "paper"])
+    p.add_argument("--steps", type=int, default=None, help="override the preset's steps")
+    p.add_argument("--device", default="cpu", choices=["cpu", "gpu"],
+                   help="gpu: the runs use JAX's default device (CUDA jaxlib installed)")
+    p.add_argument("--out", type=Path, default=RESULTS)
+    args = p.parse_args(argv)
+    if any(not 1 <= s <= len(SEEDS) for s in args.seeds):
+        p.error(f"--seeds counts must be between 1 and {len(SEEDS)}")
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="hprior_e2e_") as tmp:
+        for algo in args.algos:
+            for n in sorted(args.seeds):
+                row = one_run(args.task, algo, n, args.preset, args.steps, Path(tmp), args.device)
+                rows.append(row)
+                print("  ".join(f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}"
+                                for k, v in row.items()), flush=True)
+    by = {(r["algo"], r["seeds"]): r for r in rows}
+    for r in rows:
+        peb = by.get(("pebble", r["seeds"]))
+        r["prior_overhead"] = ""
+        if r["algo"] == "prior" and peb:
+            prior_s = r["wall_s"] - r["compile_s"]
+            r["prior_overhead"] = round((prior_s - peb["wall_s"] + peb["compile_s"]) / prior_s, 3)
+            print(f"PRIOR overhead over PEBBLE, {r['seeds']} seed(s), compile excluded: "
+                  f"{100 * r['prior_overhead']:.0f}% of PRIOR's wall time")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
