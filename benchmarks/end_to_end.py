@@ -19,7 +19,6 @@ import argparse
 import csv
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -61,22 +60,22 @@ def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
     env = dict(os.environ, HPRIOR_JAX_CACHE=str(work / f"cache_{algo}_{n_seeds}"))
     if device == "cpu":
         env["JAX_PLATFORMS"] = "cpu"
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    log_path = work / f"{algo}_{n_seeds}.log"
     t0 = time.perf_counter()
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    with open(log_path, "w") as log:  # a file, not a pipe: nothing blocks while we wait4
+        child = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(child.pid, 0)  # this child's own peak RSS
     wall = time.perf_counter() - t0
-    if out.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stdout[-2000:]}\n{out.stderr[-3000:]}")
-    # ru_maxrss of children is the max over all children so far: exact only if this child
-    # is the largest yet, so runs go in increasing size (seeds ascending) per algorithm
-    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{log_path.read_text()[-4000:]}")
+    peak_kb = usage.ru_maxrss  # KiB on Linux
     totals = perf_totals(run_dir / "metrics.jsonl", int(seeds[0]))
     measured = sum(totals[p] for p in PARTS if p != "world_model_s")  # wm is inside event_s
     return {"task": task, "algo": algo, "seeds": n_seeds, "preset": preset, "device": device,
             **totals,
             "other_s": wall - measured, "wall_s": wall,
             "env_steps_per_s": totals["steps"] * n_seeds / max(wall - totals["compile_s"], 1e-9),
-            "peak_rss_gb": peak_kb / 2**20 if peak_kb > before else float("nan")}
+            "peak_rss_gb": peak_kb / 2**20}
 
 
 def main(argv=None) -> None:
