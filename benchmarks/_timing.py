@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import platform
 import time
 from pathlib import Path
 from typing import Callable
@@ -73,3 +75,19 @@ def roofline(gflop: float, jax_ms: float, torch_ms: float | None, matmul_gflops:
     return {"gflop_per_update": round(gflop, 2), "jax_gflops_s": round(gflop / jax_ms * 1e3, 1),
             "torch_gflops_s": round(gflop / torch_ms * 1e3, 1) if torch_ms else "",
             "matmul_gflops_s": round(matmul_gflops, 1)}
+
+
+def against_torch(jax_ms: float, n_seeds: int, compile_s: float, torch_ms: float | None,
+                  gflop: float, matmul_gflops: float) -> dict:
+    """CSV columns of a JAX update (all `n_seeds` vmapped) next to one PyTorch seed:
+    times, `speedup` = PyTorch ms / JAX ms per seed (> 1: JAX faster), and the roofline."""
+    per_seed = jax_ms / n_seeds
+    return {"jax_ms_per_update": round(jax_ms, 2), "jax_ms_per_seed": round(per_seed, 2),
+            "jax_compile_s": round(compile_s, 1),
+            "torch_ms_per_seed": round(torch_ms, 2) if torch_ms else "",
+            "speedup": round(torch_ms / per_seed, 2) if torch_ms else "",
+            **roofline(gflop, per_seed, torch_ms, matmul_gflops)}
+
+
+def machine() -> str:
+    return f"{platform.machine()} {os.cpu_count()} cpus"

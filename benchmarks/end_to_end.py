@@ -16,7 +16,6 @@ compile excluded. Writes benchmarks/results/end_to_end.csv.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import subprocess
@@ -27,6 +26,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+from benchmarks._timing import write_rows
 
 RESULTS = Path(__file__).resolve().parent / "results" / "end_to_end.csv"
 PARTS = ("chunk_s", "event_s", "world_model_s", "eval_s", "checkpoint_s", "compile_s")
@@ -110,13 +110,8 @@ def main(argv=None) -> None:
             r["prior_overhead"] = round((prior_s - peb["wall_s"] + peb["compile_s"]) / prior_s, 3)
             print(f"PRIOR overhead over PEBBLE, {r['seeds']} seed(s), compile excluded: "
                   f"{100 * r['prior_overhead']:.0f}% of PRIOR's wall time")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(args.out, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        for r in rows:
-            writer.writerow({k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()})
-    print(f"wrote {args.out}")
+    write_rows([{k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()}
+                for r in rows], args.out)
 
 
 if __name__ == "__main__":

@@ -13,21 +13,20 @@ segment rewards, one backward and one Adam step over all members (BPref
 - PyTorch: BPref's loop written out here (nn.Sequential members, one Adam over all of them,
   per-member index permutations), one seed, torch's default threads.
 
-Writes benchmarks/results/reward_update.csv with ms per step and seed, `speedup` (PyTorch ms /
-JAX ms per seed), the step's FLOPs (column gflop_per_update = per step) by XLA's cost analysis and the GFLOP/s each side reaches.
+Writes benchmarks/results/reward_update.csv (an "update" in its columns = one minibatch step):
+ms per step and per seed, `speedup` (PyTorch ms / JAX ms per seed), the step's FLOPs by XLA's
+cost analysis and the GFLOP/s each side reaches.
 """
 from __future__ import annotations
 
 import argparse
 import math
-import platform
-import os
 import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (best_seconds, matmul_gflops_s, roofline, select_device,
-                                torch_reference, write_rows, xla_gflop)
+from benchmarks._timing import (against_torch, best_seconds, machine, matmul_gflops_s,
+                                select_device, torch_reference, write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reward_update.csv"
 SIZES = {"dmc": (17, 6), "metaworld": (39, 4)}  # (obs, action): cheetah, MetaWorld
@@ -151,15 +150,11 @@ def main(argv=None) -> None:
                                                          args.repeats)
         for n_seeds in args.seeds:
             res = jax_step_ms(size, n_seeds, args.pairs, args.repeats)
-            per_seed = res["ms_per_step"] / n_seeds
-            torch_ms = ref["ms_per_step"] if ref else None
             row = {"sizes": size, "seeds": n_seeds, "device": res["device"],
-                   "jax_ms_per_step": round(res["ms_per_step"], 2),
-                   "jax_ms_per_seed": round(per_seed, 2), "jax_compile_s": round(res["compile_s"], 1),
-                   "torch_ms_per_seed": round(torch_ms, 2) if ref else "",
-                   "speedup": round(torch_ms / per_seed, 2) if ref else "",
-                   **roofline(res["gflop_per_step"], per_seed, torch_ms, peak),
-                   "pairs": args.pairs, "machine": f"{platform.machine()} {os.cpu_count()} cpus"}
+                   **against_torch(res["ms_per_step"], n_seeds, res["compile_s"],
+                                   ref["ms_per_step"] if ref else None, res["gflop_per_step"],
+                                   peak),
+                   "pairs": args.pairs, "machine": machine()}
             rows.append(row)
             print("  ".join(f"{k}={v}" for k, v in row.items() if k != "machine"), flush=True)
     write_rows(rows, args.out)

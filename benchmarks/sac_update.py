@@ -29,15 +29,14 @@ import argparse
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (best_seconds, matmul_gflops_s, roofline, torch_reference,
-                                write_rows, xla_gflop)
+from benchmarks._timing import (against_torch, best_seconds, machine, matmul_gflops_s,
+                                torch_reference, write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sac_update.csv"
 SIZES = {  # name: (obs, action, hidden, depth, batch) from appendix Table 2
@@ -221,19 +220,12 @@ def main(argv=None) -> None:
             for n_seeds in args.seeds:
                 res = jax_in_child(size, n_seeds, args.updates, args.repeats, setting,
                                    args.device)
-                per_seed = res["ms_per_update"] / n_seeds
                 row = {"sizes": size, "seeds": n_seeds, "device": res["device"],
                        "xla_eigen": setting if args.device == "cpu" else "",
-                       "jax_ms_per_update": round(res["ms_per_update"], 2),
-                       "jax_ms_per_seed": round(per_seed, 2),
-                       "jax_compile_s": round(res["compile_s"], 1),
-                       "torch_ms_per_seed": round(ref["ms_per_update"], 2) if ref else "",
-                       "speedup": round(ref["ms_per_update"] / per_seed, 2) if ref else "",
-                       "seeds_cost_over_one": "",
-                       **roofline(res["gflop_per_update"], per_seed,
-                                  ref["ms_per_update"] if ref else None, res["matmul_gflops_s"]),
-                       "updates": args.updates, "machine": f"{platform.machine()} "
-                       f"{os.cpu_count()} cpus"}
+                       **against_torch(res["ms_per_update"], n_seeds, res["compile_s"],
+                                       ref["ms_per_update"] if ref else None,
+                                       res["gflop_per_update"], res["matmul_gflops_s"]),
+                       "seeds_cost_over_one": "", "updates": args.updates, "machine": machine()}
                 one = next((r for r in rows if r["sizes"] == size and r["seeds"] == 1
                             and r["xla_eigen"] == row["xla_eigen"]), None)
                 if one is not None and n_seeds > 1:

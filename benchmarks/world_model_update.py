@@ -13,14 +13,12 @@ runs to what the device sustains on large matmuls. Writes benchmarks/results/wor
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (best_seconds, matmul_gflops_s, roofline, select_device,
-                                write_rows, xla_gflop)
+from benchmarks._timing import (best_seconds, machine, matmul_gflops_s, roofline,
+                                select_device, write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "world_model_update.csv"
 OBS, ACT, SEGMENT = 17, 6, 50
@@ -89,7 +87,7 @@ def main(argv=None) -> None:
                    "jax_ms_per_update": round(res["ms_per_update"], 1),
                    "jax_ms_per_seed": round(per_seed, 1), "jax_compile_s": round(res["compile_s"], 1),
                    **roofline(res["gflop"], per_seed, None, peak),
-                   "machine": f"{platform.machine()} {os.cpu_count()} cpus"}
+                   "machine": machine()}
             rows.append(row)
             print("  ".join(f"{k}={v}" for k, v in row.items() if k != "machine"), flush=True)
     write_rows(rows, args.out)
