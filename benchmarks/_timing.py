@@ -32,7 +32,9 @@ def write_rows(rows: list[dict], path: Path) -> None:
 
 
 def xla_gflop(fn, *args) -> float:
-    """GFLOPs of one call `fn(*args)` by XLA's cost analysis of the compiled program."""
+    """GFLOPs of one call `fn(*args)` by XLA's cost analysis of the compiled program.
+    The analysis counts the body of a loop (lax.scan, nn.scan, while) once, not once per
+    iteration: pass a loop-free function (unrolled), or the count is too low."""
     cost = fn.lower(*args).compile().cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
     return cost["flops"] / 1e9

@@ -6,19 +6,23 @@ One update = `hprior_jax.prior.world_model.update_dynamics` (the function PRIOR'
 every j = 2000 env steps, `wm_update_steps` of these) on a batch of random segments
 (cheetah sizes: obs 17, action 6; segment 50), under `jit(vmap(scan(...)))` over seeds;
 compile timed apart. Sizes: `paper` = the appendix/TWM defaults (10 layers x 256, batch 100),
-`reduced` = the CPU preset (hprior_jax/presets.py). There is no PyTorch reference yet (TWM's
-Transformer-XL would have to be written out here); the roofline columns say how close the update
-runs to what the device sustains on large matmuls. Writes benchmarks/results/world_model_update.csv.
+`reduced` = the CPU preset (hprior_jax/presets.py). The PyTorch reference
+(`benchmarks/_torch_world_model.py`) is the same update as TWM writes it (a Python loop over
+layers, one seed at a time), started from the same weights: the script first checks that both
+give the same deterministic loss and gradient norm, then times each. The roofline columns say how
+close the update runs to what the device sustains on large matmuls.
+Writes benchmarks/results/world_model_update.csv.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (best_seconds, machine, matmul_gflops_s, roofline,
-                                select_device, write_rows, xla_gflop)
+from benchmarks._timing import (against_torch, best_seconds, machine, matmul_gflops_s,
+                                select_device, torch_reference, write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "world_model_update.csv"
 OBS, ACT, SEGMENT = 17, 6, 50
@@ -57,11 +61,52 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int) -> dict
     one = jax.tree.map(lambda x: x[0], states)
     obs = jax.numpy.zeros(shape + (OBS,))
     act = jax.numpy.zeros(shape + (ACT,))
-    gflop = xla_gflop(jax.jit(lambda s, o, a, k: wm.update_dynamics(s, o, a, k, cfg)),
+    # XLA's cost analysis counts the body of the layer loop once: count on unrolled layers
+    unrolled = dataclasses.replace(cfg, unroll_layers=True)
+    gflop = xla_gflop(jax.jit(lambda s, o, a, k: wm.update_dynamics(s, o, a, k, unrolled)),
                       one, obs, act, keys[0])
     return {"ms_per_update": 1e3 * best / n_updates, "compile_s": compile_s, "gflop": gflop,
             "device": jax.devices()[0].device_kind,
             "layers": cfg.num_layers, "embed": cfg.embed_dim, "batch": cfg.batch_size}
+
+
+def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
+    """PyTorch update time, after checking it computes what the JAX update computes."""
+    import jax
+    import numpy as np
+    import optax
+    import torch
+
+    from benchmarks._torch_world_model import TorchDynamicsUpdate
+    from hprior_jax.prior import world_model as wm
+
+    cfg = world_model_config(size)
+    state = wm.init(jax.random.key(0), cfg)
+    rng = np.random.default_rng(0)
+    obs = rng.standard_normal((cfg.batch_size, SEGMENT, OBS)).astype(np.float32)
+    act = rng.uniform(-1, 1, (cfg.batch_size, SEGMENT, ACT)).astype(np.float32)
+    (jax_loss, _), grads = jax.value_and_grad(wm.dynamics_loss, has_aux=True)(
+        state.params.dyn, state.params.obs, obs, act, None, cfg, True)
+    ref = TorchDynamicsUpdate(state, cfg)
+    t_obs, t_act = torch.from_numpy(obs), torch.from_numpy(act)
+    with torch.no_grad():
+        torch_loss = float(ref.loss(t_obs, t_act, training=False))
+    loss_gap = abs(torch_loss - float(jax_loss)) / abs(float(jax_loss))
+    norm_gap = abs(ref.grad_norm(t_obs, t_act) / float(optax.global_norm(grads)) - 1)
+    if loss_gap > 1e-4 or norm_gap > 1e-3:
+        raise SystemExit(f"PyTorch reference disagrees with the JAX world model: loss rel. gap "
+                         f"{loss_gap:.2e}, gradient-norm rel. gap {norm_gap:.2e}")
+
+    def run():
+        for _ in range(n_updates):
+            loss = ref.step(torch.randn(cfg.batch_size, SEGMENT, OBS),
+                            torch.rand(cfg.batch_size, SEGMENT, ACT) * 2 - 1)
+        return loss
+
+    run()  # warm-up
+    best = best_seconds(run, repeats)
+    return {"ms_per_update": 1e3 * best / n_updates, "threads": torch.get_num_threads(),
+            "version": torch.__version__, "loss_rel_gap": loss_gap, "grad_norm_rel_gap": norm_gap}
 
 
 def main(argv=None) -> None:
@@ -71,6 +116,7 @@ def main(argv=None) -> None:
     p.add_argument("--updates", type=int, default=3, help="updates per timed run")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--device", default="cpu", choices=["cpu", "gpu"])
+    p.add_argument("--no-torch", action="store_true", help="skip the PyTorch reference")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
     if any(s < 1 for s in args.seeds) or args.updates < 1 or args.repeats < 1:
@@ -79,14 +125,18 @@ def main(argv=None) -> None:
     peak = matmul_gflops_s(args.repeats)
     rows = []
     for size in args.sizes:
+        ref = None if args.no_torch else torch_reference(p, torch_update_ms, size, args.updates,
+                                                         args.repeats)
+        if ref:
+            print(f"{size}: pytorch {ref['version']} ({ref['threads']} threads) "
+                  f"{ref['ms_per_update']:.1f} ms/update; same loss as JAX within "
+                  f"{ref['loss_rel_gap']:.1e}, gradient norm within {ref['grad_norm_rel_gap']:.1e}")
         for n_seeds in args.seeds:
             res = jax_update_ms(size, n_seeds, args.updates, args.repeats)
-            per_seed = res["ms_per_update"] / n_seeds
             row = {"sizes": size, "layers": res["layers"], "embed": res["embed"],
                    "batch": res["batch"], "seeds": n_seeds, "device": res["device"],
-                   "jax_ms_per_update": round(res["ms_per_update"], 1),
-                   "jax_ms_per_seed": round(per_seed, 1), "jax_compile_s": round(res["compile_s"], 1),
-                   **roofline(res["gflop"], per_seed, None, peak),
+                   **against_torch(res["ms_per_update"], n_seeds, res["compile_s"],
+                                   ref and ref["ms_per_update"], res["gflop"], peak),
                    "machine": machine()}
             rows.append(row)
             print("  ".join(f"{k}={v}" for k, v in row.items() if k != "machine"), flush=True)

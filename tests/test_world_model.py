@@ -88,6 +88,22 @@ def test_pre_ln_transformer_xl_memory_equals_one_pass():
     np.testing.assert_array_equal(txl.new_mem_mask(None, 2, 3, 4, 0), np.zeros((2, 0), bool))
 
 
+def test_unrolled_layers_compute_the_same_and_count_every_layer():
+    """`unroll_layers` changes only the loop structure: same outputs from the same params, and
+    XLA's cost analysis (which counts a loop body once) then sees all layers."""
+    from benchmarks._timing import xla_gflop
+
+    c = txl.TransformerXLConfig(embed_dim=8, num_heads=2, head_dim=4, num_layers=3, ff_dim=16,
+                                mem_len=0)
+    x = jnp.asarray(np.random.default_rng(2).normal(size=(2, 6, 8)).astype(np.float32))
+    params = txl.TransformerXL(c).init(jax.random.key(0), x)
+    unrolled = txl.TransformerXL(dataclasses.replace(c, unroll_layers=True))
+    for a, b in zip(txl.TransformerXL(c).apply(params, x), unrolled.apply(params, x)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    looped = xla_gflop(jax.jit(txl.TransformerXL(c).apply), params, x)
+    assert xla_gflop(jax.jit(unrolled.apply), params, x) > 2.5 * looped
+
+
 # ---------------------------------------------------------------- segment sampler
 def test_sample_segments_stay_inside_one_episode_and_the_valid_prefix():
     ep_len, cap, size, seg = 10, 50, 27, 4  # 2 full episodes + 7 steps of the third

@@ -62,6 +62,8 @@ class TransformerXLConfig:
     norm_first: bool = False  # TWM is post-LN
     scale_by_model_dim: bool = True  # TWM quirk: 1/sqrt(embed_dim)
     layer_norm_eps: float = 1e-5
+    unroll_layers: bool = False  # unroll the layer scan (same arithmetic; XLA's cost analysis
+    #                              counts a loop body once, so FLOP counts need it unrolled)
 
     def __post_init__(self):
         if self.activation not in _ACT:
@@ -212,7 +214,7 @@ class TransformerXL(nn.Module):
         Scan = nn.scan(TransformerXLLayer, variable_axes={"params": 0},
                        split_rngs={"params": True, "dropout": True},
                        in_axes=(0, nn.broadcast, nn.broadcast, nn.broadcast, nn.broadcast),
-                       length=c.num_layers)
+                       length=c.num_layers, unroll=c.num_layers if c.unroll_layers else 1)
         out, (layer_inputs, attn) = Scan(c, deterministic, name="layers")(x, mems, pos_enc, u, v, mask)
         if c.norm_first:
             out = nn.LayerNorm(epsilon=c.layer_norm_eps, name="final_norm")(out)

@@ -79,6 +79,7 @@ class WorldModelConfig:
     dyn_grad_clip: float = 100.0
     latent_coef: float = 1.0
     next_obs_coef: float = 1.0
+    unroll_layers: bool = False  # see TransformerXLConfig.unroll_layers
 
     def __post_init__(self):
         if self.obs_size < 1 or self.act_size < 1:
@@ -94,7 +95,7 @@ class WorldModelConfig:
             num_layers=self.num_layers, ff_dim=self.ff_dim, dropout=self.dropout,
             activation="silu", mem_len=2 * self.memory_len + 2,
             window=2 * (self.memory_len + 1), norm_first=False,
-            scale_by_model_dim=self.scale_by_model_dim)
+            scale_by_model_dim=self.scale_by_model_dim, unroll_layers=self.unroll_layers)
 
 
 class MLP(nn.Module):
