@@ -22,13 +22,34 @@ def best_seconds(run: Callable[[], object], repeats: int, wait: Callable = lambd
     return best
 
 
-def write_rows(rows: list[dict], path: Path) -> None:
+def write_rows(rows: list[dict], path: Path, keep: list[dict] = ()) -> None:
+    """Write `keep` (rows read earlier, e.g. by `read_rows` for --append) then `rows`."""
+    rows = [*keep, *rows]
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        columns = list(dict.fromkeys(k for row in rows for k in row))  # kept rows may lack new ones
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)
     print(f"wrote {path}")
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of an earlier CSV ([] if there is none)."""
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def available_memory_gb() -> float | None:
+    """MemAvailable of /proc/meminfo (Linux), None elsewhere."""
+    try:
+        with open("/proc/meminfo") as f:
+            kb = next(int(line.split()[1]) for line in f if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration):
+        return None
+    return kb / 2**20
 
 
 def xla_gflop(fn, *args) -> float:

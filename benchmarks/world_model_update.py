@@ -1,6 +1,7 @@
 """One world-model dynamics update (Transformer-XL, appendix C / Table 5): time and roofline.
 
     python -m benchmarks.world_model_update [--sizes reduced paper] [--seeds 1 5] [--updates 3]
+                                            [--dropout-rng rbg threefry]
 
 One update = `hprior_jax.prior.world_model.update_dynamics` (the function PRIOR's schedule runs:
 every j = 2000 env steps, `wm_update_steps` of these) on a batch of random segments
@@ -10,36 +11,42 @@ compile timed apart. Sizes: `paper` = the appendix/TWM defaults (10 layers x 256
 (`benchmarks/_torch_world_model.py`) is the same update as TWM writes it (a Python loop over
 layers, one seed at a time), started from the same weights: the script first checks that both
 give the same deterministic loss and gradient norm, then times each. The roofline columns say how
-close the update runs to what the device sustains on large matmuls.
+close the update runs to what the device sustains on large matmuls. `--dropout-rng` times the
+dropout-mask PRNGs the config offers (rbg is the default; threefry was the default before).
 Writes benchmarks/results/world_model_update.csv.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (against_torch, best_seconds, machine, matmul_gflops_s,
-                                select_device, torch_reference, write_rows, xla_gflop)
+from benchmarks._timing import (against_torch, available_memory_gb, best_seconds, machine,
+                                matmul_gflops_s, read_rows, select_device, torch_reference,
+                                write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "world_model_update.csv"
 OBS, ACT, SEGMENT = 17, 6, 50
 
 
-def world_model_config(size: str):
+def world_model_config(size: str, dropout_rng: str | None = None):
     from hprior_jax.presets import prior_config
 
-    return prior_config("cheetah_run", size).world_model(OBS, ACT, SEGMENT)
+    cfg = prior_config("cheetah_run", size).world_model(OBS, ACT, SEGMENT)
+    return cfg if dropout_rng is None else dataclasses.replace(cfg, dropout_rng=dropout_rng)
 
 
-def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int) -> dict:
+def update_program(size: str, n_seeds: int, n_updates: int, dropout_rng: str | None = None):
+    """`jit(vmap(scan(update_dynamics)))` over `n_seeds` seeds and `n_updates` updates on random
+    segments, not yet compiled. -> (fn, states, keys, cfg); call fn(states, keys)."""
     import jax
 
     from hprior_jax.prior import world_model as wm
 
-    cfg = world_model_config(size)
+    cfg = world_model_config(size, dropout_rng)
     shape = (cfg.batch_size, SEGMENT)
 
     def run(state, key):
@@ -53,9 +60,28 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int) -> dict
 
     keys = jax.random.split(jax.random.key(0), n_seeds)
     states = jax.jit(jax.vmap(lambda k: wm.init(k, cfg)))(keys)
+    return jax.jit(jax.vmap(run)), states, keys, cfg
+
+
+def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int,
+                  dropout_rng: str | None = None) -> dict:
+    import jax
+
+    from hprior_jax.prior import world_model as wm
+
+    program, states, keys, cfg = update_program(size, n_seeds, n_updates, dropout_rng)
+    shape = (cfg.batch_size, SEGMENT)
     t0 = time.perf_counter()
-    fn = jax.jit(jax.vmap(run)).lower(states, keys).compile()
+    fn = program.lower(states, keys).compile()
     compile_s = time.perf_counter() - t0
+    temp_gb = fn.memory_analysis().temp_size_in_bytes / 2**30
+    free_gb = available_memory_gb()
+    if free_gb is not None and temp_gb > free_gb - 2.0:
+        # the kernel's OOM killer would end the process without a word; say why instead
+        # (2 GiB: states, outputs and the runtime beside the temporaries)
+        return {"skipped": f"needs {temp_gb:.1f} GiB of temporaries, {free_gb:.1f} GiB available: "
+                           f"run it in a process of its own (--sizes {size} --seeds {n_seeds} "
+                           "--no-torch --append) or on a larger machine"}
     jax.block_until_ready(fn(states, keys))
     best = best_seconds(lambda: fn(states, keys), repeats, jax.block_until_ready)
     one = jax.tree.map(lambda x: x[0], states)
@@ -66,7 +92,8 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int) -> dict
     gflop = xla_gflop(jax.jit(lambda s, o, a, k: wm.update_dynamics(s, o, a, k, unrolled)),
                       one, obs, act, keys[0])
     return {"ms_per_update": 1e3 * best / n_updates, "compile_s": compile_s, "gflop": gflop,
-            "device": jax.devices()[0].device_kind,
+            "temp_gib": temp_gb,
+            "device": jax.devices()[0].device_kind, "dropout_rng": cfg.dropout_rng,
             "layers": cfg.num_layers, "embed": cfg.embed_dim, "batch": cfg.batch_size}
 
 
@@ -115,14 +142,19 @@ def main(argv=None) -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
     p.add_argument("--updates", type=int, default=3, help="updates per timed run")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--dropout-rng", nargs="+", default=[None], choices=["rbg", "threefry"],
+                   help="PRNG of the dropout masks (default: the config's)")
     p.add_argument("--device", default="cpu", choices=["cpu", "gpu"])
     p.add_argument("--no-torch", action="store_true", help="skip the PyTorch reference")
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--append", action="store_true",
+                   help="keep the rows already in --out (same columns) and add these")
     args = p.parse_args(argv)
     if any(s < 1 for s in args.seeds) or args.updates < 1 or args.repeats < 1:
         p.error("--seeds, --updates and --repeats must be >= 1")
     select_device(args.device)
     peak = matmul_gflops_s(args.repeats)
+    kept = read_rows(args.out) if args.append else []
     rows = []
     for size in args.sizes:
         ref = None if args.no_torch else torch_reference(p, torch_update_ms, size, args.updates,
@@ -131,16 +163,21 @@ def main(argv=None) -> None:
             print(f"{size}: pytorch {ref['version']} ({ref['threads']} threads) "
                   f"{ref['ms_per_update']:.1f} ms/update; same loss as JAX within "
                   f"{ref['loss_rel_gap']:.1e}, gradient norm within {ref['grad_norm_rel_gap']:.1e}")
-        for n_seeds in args.seeds:
-            res = jax_update_ms(size, n_seeds, args.updates, args.repeats)
+        for dropout_rng, n_seeds in itertools.product(args.dropout_rng, args.seeds):
+            res = jax_update_ms(size, n_seeds, args.updates, args.repeats, dropout_rng)
+            if "skipped" in res:
+                print(f"{size}, {n_seeds} seeds, dropout {dropout_rng or 'default'}: skipped, "
+                      f"{res['skipped']}", flush=True)
+                continue
             row = {"sizes": size, "layers": res["layers"], "embed": res["embed"],
-                   "batch": res["batch"], "seeds": n_seeds, "device": res["device"],
+                   "batch": res["batch"], "seeds": n_seeds, "dropout_rng": res["dropout_rng"],
+                   "device": res["device"],
                    **against_torch(res["ms_per_update"], n_seeds, res["compile_s"],
                                    ref and ref["ms_per_update"], res["gflop"], peak),
-                   "machine": machine()}
+                   "jax_temp_gib": round(res["temp_gib"], 2), "machine": machine()}
             rows.append(row)
             print("  ".join(f"{k}={v}" for k, v in row.items() if k != "machine"), flush=True)
-    write_rows(rows, args.out)
+            write_rows(rows, args.out, kept)  # after every row: a later crash loses nothing
 
 
 if __name__ == "__main__":

@@ -37,3 +37,35 @@ def test_best_seconds_keeps_the_fastest_and_waits(monkeypatch):
     monkeypatch.setattr(timing.time, "perf_counter", lambda: next(times))
     assert best_seconds(lambda: "out", 3, waited.append) == pytest.approx(1.0)
     assert waited == ["out"] * 3
+
+
+def test_write_rows_appends_to_kept_rows_with_new_columns(tmp_path):
+    path = tmp_path / "r.csv"
+    timing.write_rows([{"size": "a", "ms": 1.5}], path)
+    kept = timing.read_rows(path)
+    timing.write_rows([{"size": "b", "ms": 2.0, "temp_gib": 0.5}], path, kept)
+    assert timing.read_rows(path) == [{"size": "a", "ms": "1.5", "temp_gib": ""},
+                                      {"size": "b", "ms": "2.0", "temp_gib": "0.5"}]
+    assert timing.read_rows(tmp_path / "missing.csv") == []
+
+
+def test_op_profile_maps_xla_ops_to_their_jax_source():
+    from benchmarks.op_profile import op_sources, source_of
+
+    hlo = ('  %fusion.3 = f32[4,8]{1,0} fusion(%p0), kind=kLoop, metadata={op_name='
+           '"jit(run)/while/body/closed_call/transpose(jvp(Model))/layers/self_attn/bind,jnd->bnij/transpose" '
+           'stack_frame_id=9}\n'
+           '  ROOT %rng.1 = u32[8,4]{1,0} fusion(%k), metadata={op_name='
+           '"jit(run)/jvp(Model)/layers/Dropout_1/jit(_bernoulli)/jit(_uniform)/rng_bit_generator"}\n'
+           '  %copy.2 = f32[4]{0} copy(%x)\n'
+           '%fused_computation.7 (p: f32[4,8]) -> f32[4,4] {\n'
+           '  %p = f32[4,8]{1,0} parameter(0)\n'
+           '  ROOT %dot.1 = f32[4,4]{1,0} dot(%p, %p), metadata={op_name="jit(run)/layers/linear1/dot_general"}\n'
+           '}\n'
+           '  %ynn_fusion.7 = f32[4,4]{1,0} fusion(%a), kind=kCustom, calls=%fused_computation.7\n')
+    sources = op_sources(hlo)
+    assert set(sources) == {"fusion.3", "rng.1", "dot.1", "ynn_fusion.7"}
+    assert source_of(sources["ynn_fusion.7"]) == ("fwd", "linear1/dot_general")
+    assert source_of(sources["fusion.3"]) == ("bwd", "bind,jnd->bnij/transpose")
+    assert source_of(sources["rng.1"]) == ("fwd", "rng (dropout bits)")
+    assert source_of("jit(run)/jvp(M)/layers/Dropout_0/select_n") == ("fwd", "dropout (apply mask)")

@@ -202,3 +202,22 @@ def test_dynamics_gradient_leaves_the_observation_model_alone():
                                     argnums=(0, 1)))(st.params.dyn, st.params.obs)
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree_util.tree_leaves(g_obs))
     assert sum(float(jnp.abs(g).sum()) for g in jax.tree_util.tree_leaves(g_dyn)) > 0.0
+
+
+@pytest.mark.parametrize("impl", wm.DROPOUT_RNGS)
+def test_dropout_rng_drops_reproducibly_and_both_impls_are_vmappable(impl):
+    """Either PRNG gives dropout masks that depend on the key only (same key: same output; other
+    key: other output), leave the deterministic pass alone, and work under vmap over seeds."""
+    cfg = _cfg(dropout=0.5, dropout_rng=impl)
+    st = _init(jax.random.key(4), cfg)
+    o = OBS_BUF.reshape(N_EP, EP, DS)[:2, :T]
+    a = ACT_BUF.reshape(N_EP, EP, DA)[:2, :T]
+    run = jax.jit(lambda k: wm.dynamics(st.params, o, a, cfg, deterministic=False, key=k)[0])
+    z1, z1_again, z2 = run(jax.random.key(5)), run(jax.random.key(5)), run(jax.random.key(6))
+    z_det = wm.dynamics(st.params, o, a, cfg)[0]
+    assert np.array_equal(z1, z1_again)
+    assert not np.allclose(z1, z2) and not np.allclose(z1, z_det)
+    z_batched = jax.vmap(run)(jax.random.split(jax.random.key(7), 2))
+    assert z_batched.shape == (2,) + z1.shape and not np.allclose(z_batched[0], z_batched[1])
+    with pytest.raises(ValueError, match="dropout_rng"):
+        _cfg(dropout_rng="philox")

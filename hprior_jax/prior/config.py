@@ -42,6 +42,8 @@ class PriorRunConfig:
     wm_head_hidden: int = 512
     wm_head_depth: int = 4
     wm_dropout: float = 0.1
+    wm_dropout_rng: Literal["rbg", "threefry"] = "rbg"
+    """PRNG of the world model's dropout masks: rbg is faster on CPU (see WorldModelConfig)."""
     wm_lr: float = 1e-4
 
     def __post_init__(self):
@@ -70,6 +72,6 @@ class PriorRunConfig:
             obs_size=obs_size, act_size=act_size, latent_dim=self.wm_latent,
             obs_hidden=(self.wm_obs_hidden,) * self.wm_obs_depth, embed_dim=self.wm_embed,
             num_heads=self.wm_heads, head_dim=self.wm_head_dim, num_layers=self.wm_layers,
-            ff_dim=self.wm_ff, dropout=self.wm_dropout,
+            ff_dim=self.wm_ff, dropout=self.wm_dropout, dropout_rng=self.wm_dropout_rng,
             head_hidden=(self.wm_head_hidden,) * self.wm_head_depth, segment_len=segment_len,
             memory_len=segment_len, batch_size=self.wm_batch, obs_lr=self.wm_lr, dyn_lr=self.wm_lr)

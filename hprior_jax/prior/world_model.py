@@ -50,6 +50,16 @@ _relu_gain_init = nn.initializers.variance_scaling(2.0, "fan_in", "uniform")
 _linear_init = nn.initializers.variance_scaling(1.0, "fan_in", "uniform")
 
 
+DROPOUT_RNGS = ("rbg", "threefry")
+
+
+def dropout_key(key: jax.Array, impl: str) -> jax.Array:
+    """The dropout key in the PRNG implementation `impl` ("rbg": seeded from `key`'s bits)."""
+    if impl == "threefry":
+        return key
+    return jax.random.wrap_key_data(jax.random.bits(key, (4,), jnp.uint32), impl=impl)
+
+
 @dataclass(frozen=True)
 class WorldModelConfig:
     """Architecture, data and optimiser settings. Defaults: appendix C / Table 5 and TWM's config."""
@@ -80,6 +90,11 @@ class WorldModelConfig:
     latent_coef: float = 1.0
     next_obs_coef: float = 1.0
     unroll_layers: bool = False  # see TransformerXLConfig.unroll_layers
+    # Dropout masks from XLA's RngBitGenerator ("rbg") instead of threefry: a dynamics update
+    # measured 11% faster at the reduced size with 5 seeds (541 -> 483 ms) and 10% at the paper
+    # size (7.38 -> 6.65 s, 1 seed) on a 2-core CPU (benchmarks/results/world_model_update.csv).
+    # Same distribution, other random stream; "threefry" gives the masks of the key itself.
+    dropout_rng: str = "rbg"
 
     def __post_init__(self):
         if self.obs_size < 1 or self.act_size < 1:
@@ -87,6 +102,8 @@ class WorldModelConfig:
         if self.memory_len + 1 < self.segment_len:
             raise ValueError(f"memory_len={self.memory_len} < segment_len-1: the last step could not "
                              "see the first; set memory_len = segment_len (appendix Table 5)")
+        if self.dropout_rng not in DROPOUT_RNGS:
+            raise ValueError(f"dropout_rng={self.dropout_rng!r}; choose one of {DROPOUT_RNGS}")
 
     def transformer(self) -> TransformerXLConfig:
         # TWM PredictionNet with modalities (z, a), num_current = 2.
@@ -221,7 +238,7 @@ def dynamics(params: WorldModelParams, obs: jax.Array, act: jax.Array, cfg: Worl
     enters under stop_gradient (TWM). `key` is the dropout key (needed iff not deterministic).
     """
     z = jax.lax.stop_gradient(encode(params.obs, obs, cfg))
-    rngs = None if deterministic else {"dropout": key}
+    rngs = None if deterministic else {"dropout": dropout_key(key, cfg.dropout_rng)}
     return DynamicsModel(cfg).apply(params.dyn, z, act, mems, key_mask, deterministic, rngs=rngs)
 
 
