@@ -42,8 +42,8 @@ def read_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def available_memory_gb() -> float | None:
-    """MemAvailable of /proc/meminfo (Linux), None elsewhere."""
+def available_memory_gib() -> float | None:
+    """MemAvailable of /proc/meminfo in GiB (Linux), None elsewhere."""
     try:
         with open("/proc/meminfo") as f:
             kb = next(int(line.split()[1]) for line in f if line.startswith("MemAvailable:"))

@@ -79,11 +79,14 @@ def op_times_us(trace_dir: str) -> collections.Counter:
 
 
 def main(argv=None) -> None:
+    from hprior_jax.prior.world_model import DROPOUT_RNGS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--size", default="reduced", choices=["reduced", "paper"])
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--updates", type=int, default=4, help="updates in the profiled call")
-    p.add_argument("--dropout-rng", default=None, choices=["rbg", "threefry"])
+    p.add_argument("--dropout-rng", default=None, choices=DROPOUT_RNGS,
+                   help="PRNG of the dropout masks (default: the config's)")
     p.add_argument("--top", type=int, default=30)
     p.add_argument("--device", default="cpu", choices=["cpu", "gpu"])
     p.add_argument("--out", type=Path, default=RESULTS)

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (against_torch, available_memory_gb, best_seconds, machine,
+from benchmarks._timing import (against_torch, available_memory_gib, best_seconds, machine,
                                 matmul_gflops_s, read_rows, select_device, torch_reference,
                                 write_rows, xla_gflop)
 
@@ -74,12 +74,12 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int,
     t0 = time.perf_counter()
     fn = program.lower(states, keys).compile()
     compile_s = time.perf_counter() - t0
-    temp_gb = fn.memory_analysis().temp_size_in_bytes / 2**30
-    free_gb = available_memory_gb()
-    if free_gb is not None and temp_gb > free_gb - 2.0:
+    temp_gib = fn.memory_analysis().temp_size_in_bytes / 2**30
+    free_gib = available_memory_gib()
+    if free_gib is not None and temp_gib > free_gib - 2.0:
         # the kernel's OOM killer would end the process without a word; say why instead
         # (2 GiB: states, outputs and the runtime beside the temporaries)
-        return {"skipped": f"needs {temp_gb:.1f} GiB of temporaries, {free_gb:.1f} GiB available: "
+        return {"skipped": f"needs {temp_gib:.1f} GiB of temporaries, {free_gib:.1f} GiB available: "
                            f"run it in a process of its own (--sizes {size} --seeds {n_seeds} "
                            "--no-torch --append) or on a larger machine"}
     jax.block_until_ready(fn(states, keys))
@@ -92,7 +92,7 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int,
     gflop = xla_gflop(jax.jit(lambda s, o, a, k: wm.update_dynamics(s, o, a, k, unrolled)),
                       one, obs, act, keys[0])
     return {"ms_per_update": 1e3 * best / n_updates, "compile_s": compile_s, "gflop": gflop,
-            "temp_gib": temp_gb,
+            "temp_gib": temp_gib,
             "device": jax.devices()[0].device_kind, "dropout_rng": cfg.dropout_rng,
             "layers": cfg.num_layers, "embed": cfg.embed_dim, "batch": cfg.batch_size}
 
@@ -137,12 +137,14 @@ def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
 
 
 def main(argv=None) -> None:
+    from hprior_jax.prior.world_model import DROPOUT_RNGS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", nargs="+", default=["reduced", "paper"], choices=["reduced", "paper"])
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
     p.add_argument("--updates", type=int, default=3, help="updates per timed run")
     p.add_argument("--repeats", type=int, default=2)
-    p.add_argument("--dropout-rng", nargs="+", default=[None], choices=["rbg", "threefry"],
+    p.add_argument("--dropout-rng", nargs="+", default=[None], choices=DROPOUT_RNGS,
                    help="PRNG of the dropout masks (default: the config's)")
     p.add_argument("--device", default="cpu", choices=["cpu", "gpu"])
     p.add_argument("--no-torch", action="store_true", help="skip the PyTorch reference")

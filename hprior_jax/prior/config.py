@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from hprior_jax.prior.loss import VARIANTS, PriorConfig
-from hprior_jax.prior.world_model import WorldModelConfig
+from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class PriorRunConfig:
     wm_head_hidden: int = 512
     wm_head_depth: int = 4
     wm_dropout: float = 0.1
-    wm_dropout_rng: Literal["rbg", "threefry"] = "rbg"
+    wm_dropout_rng: DropoutRng = "rbg"
     """PRNG of the world model's dropout masks: rbg is faster on CPU (see WorldModelConfig)."""
     wm_lr: float = 1e-4
 
