@@ -8,7 +8,7 @@ One step = every member of the ensemble (3 x 3x256, LeakyReLU, tanh) on its own 
 segment rewards, one backward and one Adam step over all members (BPref
 `RewardModel.train_reward`). Timed over one epoch of `--pairs` stored pairs.
 
-- JAX: `hprior_jax.pebble.preference.train_epoch`, the function training runs, under
+- JAX: `hprior_jax.pbrl.preference.train_epoch`, the function training runs, under
   `jit(vmap(...))` over `--seeds`; compile timed apart; `--device gpu` on a GPU.
 - PyTorch: BPref's loop written out here (nn.Sequential members, one Adam over all of them,
   per-member index permutations), one seed, torch's default threads.
@@ -53,7 +53,7 @@ def jax_step_ms(size: str, n_seeds: int, n_pairs: int, repeats: int) -> dict:
     import jax.numpy as jnp
 
     from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble
-    from hprior_jax.pebble.preference import PreferenceConfig, make_optimizer, train_epoch
+    from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_epoch
 
     obs, act = SIZES[size]
     rcfg, pcfg = RewardConfig(hidden_sizes=HIDDEN, ensemble_size=MEMBERS), PreferenceConfig()

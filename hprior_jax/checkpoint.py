@@ -38,14 +38,26 @@ class Checkpointer:
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
 
-    def restore(self, like, step: int | None = None):
-        """Restores into the structure, shapes and dtypes of `like` (a RunState)."""
+    def stored_names(self, step: int | None = None) -> set[str]:
+        """Leaf names held by the checkpoint at `step` (default: the latest)."""
+        step = self.latest_step() if step is None else step
+        metadata = ocp.StandardCheckpointer().metadata(self.directory / str(step) / "default")
+        return set(metadata.item_metadata.keys())
+
+    def restore(self, like, step: int | None = None, rename=None):
+        """Restores into the structure, shapes and dtypes of `like` (a RunState).
+
+        `rename(name) -> stored name | None` reads checkpoints written with other leaf names
+        (an older state layout); None keeps `like`'s value for that leaf."""
         step = self.latest_step() if step is None else step
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _flat(like))
+        rename = rename or (lambda name: name)
+        stored = {name: rename(name) for name in _flat(like)}
+        abstract = {stored[name]: ocp.utils.to_shape_dtype_struct(x)
+                    for name, x in _flat(like).items() if stored[name] is not None}
         flat = self._manager.restore(step, args=ocp.args.StandardRestore(abstract))
-        leaves = [flat.get(_name(path), leaf) for path, leaf in _with_path(like)]
+        leaves = [flat.get(stored.get(_name(path)), leaf) for path, leaf in _with_path(like)]
         return step, jax.tree.unflatten(jax.tree.structure(like), leaves)
 
     def close(self) -> None:

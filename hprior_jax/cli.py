@@ -7,6 +7,7 @@
     hprior grid --tasks cheetah_run --algos sac pebble prior --budget reduced --out results
     hprior report results
     hprior tasks
+    hprior methods
 """
 from __future__ import annotations
 
@@ -15,21 +16,24 @@ import sys
 
 from tasks import _xla_flags  # noqa: F401  (before anything imports jax)
 
+from hprior_jax.methods import registry
+
 USAGE = """usage: hprior COMMAND [ARGS]
 
 commands:
   train      train an agent (hprior train --help for every option)
-  attention  world-model attention maps of a trained --algo prior run
+  attention  world-model attention maps of a trained run of a method with a world model
   grid       every (task, algorithm) with its seeds; skips finished runs, resumes the rest
   report     Tables 6-7, paired t-tests, learning curves of a grid's results directory
   tasks      list the registered tasks
+  methods    list the registered methods (--algo)
 """
 
 
 def _train(argv: list[str]) -> int:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--task", default="cheetah_run")
-    pre.add_argument("--algo", default="sac")
+    pre.add_argument("--algo", default=registry.DEFAULT)
     pre.add_argument("--preset", default="paper")
     pre.add_argument("--resume", default=None)
     pre.add_argument("--steps", type=int, default=None)
@@ -38,16 +42,16 @@ def _train(argv: list[str]) -> int:
     known, rest = pre.parse_known_args(argv)
     argv = [ALIASES.get(a, a) for a in argv]
 
+    from hprior_jax.loop import host, run_dir as run_dirs
     from hprior_jax.setup_jax import enable_compilation_cache
-    from hprior_jax import train
 
     if known.resume:
         if rest:
             raise SystemExit(f"--resume takes only --steps to extend a run; got {rest}")
         run_dir = known.resume
-        cfg, saved_capacity = train.load_run_config(run_dir), None
+        cfg, saved_capacity = run_dirs.load_run_config(run_dir), None
         if known.steps is not None and known.steps != cfg.steps:
-            cfg, saved_capacity = train.extend_run(run_dir, known.steps)
+            cfg, saved_capacity = run_dirs.extend_run(run_dir, known.steps)
         resume = True
     else:
         import tyro
@@ -59,14 +63,14 @@ def _train(argv: list[str]) -> int:
             default = presets.with_teacher(default, known.teacher)
         if "-h" not in rest and "--help" not in rest:
             rest = _drop_option([a for a in argv if a != "--no-progress"], "--teacher")
-        cfg = tyro.cli(train.TrainConfig, default=default, args=rest,
-                       prog="hprior train", description="Train an agent on an MJX task.")
-        run_dir = train.prepare_run_dir(cfg)
+        cfg = tyro.cli(type(default), default=default, args=rest, prog="hprior train",
+                       description=f"Train an agent on an MJX task (--algo {known.algo}).")
+        run_dir = run_dirs.prepare_run_dir(cfg)
         resume, saved_capacity = False, None
     enable_compilation_cache()
     print(f"run directory: {run_dir}", flush=True)
-    train.run(cfg, run_dir, resume=resume, progress=not known.no_progress,
-              saved_capacity=saved_capacity)
+    host.run(cfg, run_dir, resume=resume, progress=not known.no_progress,
+             saved_capacity=saved_capacity)
     print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
           "tb/ (TensorBoard), checkpoints/", flush=True)
     return 0
@@ -94,12 +98,13 @@ def _attention(argv: list[str]) -> int:
         prog="hprior attention",
         description="Attention of the world model's final step over a stored preference "
                     "segment (layers x time, state and action tokens), as appendix Figure 8.")
-    parser.add_argument("--run", required=True, help="run directory of an --algo prior run")
+    parser.add_argument("--run", required=True,
+                        help="run directory of a method with a world model (e.g. --algo prior)")
     parser.add_argument("--pair", type=int, default=0, help="index of the stored labelled pair")
     parser.add_argument("--seed", type=int, default=None, help="which of the run's seeds")
     parser.add_argument("--out", default=None, help="folder for the PNGs (default RUN/attention)")
     args = parser.parse_args(argv)
-    from hprior_jax.prior.attention_map import attention_maps_for_run
+    from hprior_jax.experiments.attention_map import attention_maps_for_run
 
     for path in attention_maps_for_run(args.run, pair=args.pair, seed=args.seed, out=args.out):
         print(path)
@@ -115,7 +120,9 @@ def _grid(argv: list[str]) -> int:
                     "OUT/<task>/<algo>/. Re-running the same command skips complete runs and "
                     "resumes interrupted ones.")
     parser.add_argument("--tasks", nargs="+", required=True)
-    parser.add_argument("--algos", nargs="+", default=["sac", "pebble", "prior"])
+    parser.add_argument("--algos", nargs="+", default=list(registry.GRID_DEFAULT),
+                        help=f"methods (default: {' '.join(registry.GRID_DEFAULT)}; all: "
+                             f"{' '.join(registry.names())})")
     parser.add_argument("--seeds", nargs="+", type=int, default=list(PAPER_SEEDS))
     parser.add_argument("--budget", default="reduced", choices=("paper", "reduced", "smoke"),
                         help="the preset of every run (see README: Presets)")
@@ -170,6 +177,11 @@ def _tasks(argv: list[str]) -> int:
     return 0
 
 
+def _methods(argv: list[str]) -> int:
+    print(registry.describe())
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
@@ -177,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
     commands = {"train": _train, "attention": _attention, "grid": _grid, "report": _report,
-                "tasks": _tasks}
+                "tasks": _tasks, "methods": _methods}
     if command not in commands:
         print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         return 2

@@ -1,26 +1,33 @@
-"""Frozen run configuration. Validation raises with a message that names the fix."""
+"""Frozen run configuration. Validation raises with a message that names the fix.
+
+`RunConfig` holds what every run has (task, seeds, budget, cadence, SAC, replay); each
+method adds its own sections (PEBBLE's `pebble`, PRIOR's `prior`, ...). `config_class(algo)`
+is RunConfig plus the sections of that method, so a run's config.json records only what the
+run uses, and `--<section>.<field>` flags exist only for the method that reads them.
+"""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.pebble.config import PebbleConfig
-from hprior_jax.pebble.teacher import TeacherConfig
-from hprior_jax.prior.config import PriorRunConfig
+from hprior_jax.methods import registry
 
-ALGORITHMS = ("sac", "pebble", "prior")  # grows with the PbRL baselines (surf, rune, ...)
 PRESETS = ("paper", "reduced", "smoke")
+FORMAT = 2  # config.json layout: 2 = per-method sections (1 = every run had pebble and prior)
 
 
 @dataclass(frozen=True)
-class TrainConfig:
-    """One training run: a task, an algorithm, and seeds run vmapped in one process."""
+class RunConfig:
+    """One training run: a task, a method, and seeds run vmapped in one process."""
 
     task: str = "cheetah_run"
-    algo: str = "sac"
+    algo: str = registry.DEFAULT
+    """The method (`hprior train --algo`): see `hprior methods`."""
     preset: Literal["paper", "reduced", "smoke"] = "paper"
     """Budget and network sizes: `paper` (appendix Table 2), `reduced` (smaller nets and
     steps for a 2-core CPU) or `smoke` (a few minutes: the README's first run)."""
@@ -39,15 +46,11 @@ class TrainConfig:
     out: str = ""
     """Run directory (default: runs/<task>_<algo>_<time>)."""
     sac: SACConfig = field(default_factory=SACConfig)
-    pebble: PebbleConfig = field(default_factory=PebbleConfig)
-    """Preference learning (used by --algo pebble and the methods built on it)."""
-    prior: PriorRunConfig = field(default_factory=PriorRunConfig)
-    """Hindsight PRIOR's world model and prior loss (used by --algo prior)."""
 
     def __post_init__(self):
-        if self.algo not in ALGORITHMS:
-            raise ValueError(
-                f"unknown algorithm {self.algo!r}; available: {', '.join(ALGORITHMS)}")
+        if self.algo not in registry.names():
+            raise ValueError(f"unknown algorithm {self.algo!r}; available: "
+                             f"{', '.join(registry.names())}")
         if not self.seeds:
             raise ValueError("give at least one seed, e.g. --seeds 12345")
         if len(set(self.seeds)) != len(self.seeds):
@@ -71,15 +74,34 @@ class TrainConfig:
         return self.replay_capacity or self.steps
 
     def to_json(self) -> str:
-        return json.dumps(dataclasses.asdict(self), indent=2)
+        return json.dumps({"format": FORMAT, **dataclasses.asdict(self)}, indent=2)
 
     @staticmethod
-    def from_dict(d: dict) -> "TrainConfig":
-        d = dict(d)
-        d["sac"] = SACConfig(**d["sac"])
-        pebble = dict(d.get("pebble", {}))
-        pebble["teacher"] = TeacherConfig(**pebble.get("teacher", {}))
-        d["pebble"] = PebbleConfig(**pebble)
-        d["prior"] = PriorRunConfig(**d.get("prior", {}))
-        d["seeds"] = tuple(d["seeds"])
-        return TrainConfig(**d)
+    def from_dict(d: dict) -> "RunConfig":
+        """The inverse of `to_json` (format 2; `hprior_jax.loop.run_dir` reads format 1)."""
+        d = {k: v for k, v in d.items() if k != "format"}
+        return _dataclass_from_dict(config_class(d.get("algo", registry.DEFAULT)), d)
+
+
+@functools.cache
+def config_class(algo: str) -> type[RunConfig]:
+    """RunConfig plus the configuration sections of method `algo` (one class per method)."""
+    spec = registry.get(algo)
+    if not spec.sections:
+        return RunConfig
+    fields = [(name, typ, field(default_factory=typ)) for name, typ in spec.sections.items()]
+    cls = dataclasses.make_dataclass(f"RunConfig_{algo}", fields, bases=(RunConfig,),
+                                     frozen=True)
+    cls.__doc__ = f"{RunConfig.__doc__}\n\n{algo}: {', '.join(spec.sections) or 'no sections'}"
+    return cls
+
+
+def _dataclass_from_dict(cls, d: dict):
+    """A (nested) frozen dataclass from its `dataclasses.asdict` form."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for k, v in d.items():
+        if dataclasses.is_dataclass(hints[k]) and isinstance(v, dict):
+            v = _dataclass_from_dict(hints[k], v)
+        kwargs[k] = tuple(v) if isinstance(v, list) else v
+    return cls(**kwargs)

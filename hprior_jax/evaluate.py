@@ -1,7 +1,7 @@
 """Evaluation rollouts: deterministic policy (tanh of the mean), whole episodes, true return.
 
 BPref evaluates 10 deterministic episodes every 10k steps and counts MetaWorld success at
-any step of an episode (pbrl_spec.md §7). We run the episodes in parallel in a separate
+any step of an episode. We run the episodes in parallel in a separate
 environment batch, so evaluation never perturbs the training environment or its keys.
 """
 from __future__ import annotations

@@ -9,19 +9,41 @@ This package imports nothing from `hprior_jax`; `hprior_jax.envs` is its only cl
 """
 from tasks import _xla_flags  # noqa: F401  (must run before jax is imported)
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from tasks.base import Task, TaskState
 
 _REGISTRY: dict[str, Callable[[], Task]] = {}
+_INFO: dict[str, "TaskInfo"] = {}
 _CACHE: dict[str, Task] = {}
 
 
-def register(name: str, factory: Callable[[], Task]) -> None:
-    """Adds a task factory under `name` (e.g. "walker_walk")."""
+class TaskInfo(NamedTuple):
+    """What presets and checks need to know of a task without building its model."""
+
+    domain: str  # "dm_control" or "metaworld"
+    episode_length: int
+    has_success: bool
+
+
+def register(name: str, factory: Callable[[], Task], info: TaskInfo | None = None) -> None:
+    """Adds a task factory under `name` (e.g. "walker_walk"). `info` may be left out when
+    `factory` is a Task class (its class attributes are read)."""
     if name in _REGISTRY:
         raise ValueError(f"task {name!r} is already registered")
+    if info is None:
+        if not (isinstance(factory, type) and issubclass(factory, Task)):
+            raise ValueError(f"register {name!r} with its TaskInfo (domain, episode length)")
+        info = TaskInfo(factory.domain, factory.episode_length, factory.has_success)
     _REGISTRY[name] = factory
+    _INFO[name] = info
+
+
+def info(name: str) -> TaskInfo:
+    """Domain, episode length and success flag of `name`, without building it."""
+    if name not in _INFO:
+        raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(names())}")
+    return _INFO[name]
 
 
 def names() -> list[str]:
@@ -48,16 +70,16 @@ def _lazy(module: str, cls: str) -> Callable[[], Task]:
     return factory
 
 
-# DM Control ports (tasks/dm_control/)
+# DM Control ports (tasks/dm_control/): 1000 control steps each (a test checks the built tasks)
 for _name, _module, _cls in (("cheetah_run", "cheetah", "CheetahRun"),
                              ("walker_walk", "walker", "WalkerWalk"),
                              ("quadruped_walk", "quadruped", "QuadrupedWalk")):
-    register(_name, _lazy(f"dm_control.{_module}", _cls))
+    register(_name, _lazy(f"dm_control.{_module}", _cls), TaskInfo("dm_control", 1000, False))
 
-# MetaWorld v3 ports (tasks/metaworld/)
+# MetaWorld v3 ports (tasks/metaworld/): max_path_length 500
 for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress"),
                     ("door_open", "DoorOpen"), ("window_open", "WindowOpen"),
                     ("door_unlock", "DoorUnlock"), ("sweep_into", "SweepInto")):
-    register(_name, _lazy(f"metaworld.{_name}", _cls))
+    register(_name, _lazy(f"metaworld.{_name}", _cls), TaskInfo("metaworld", 500, True))
 
-__all__ = ["Task", "TaskState", "make", "names", "register"]
+__all__ = ["Task", "TaskInfo", "TaskState", "info", "make", "names", "register"]

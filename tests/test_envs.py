@@ -87,3 +87,14 @@ def test_make_env_unknown_task_names_the_available_ones():
         make_env("cheetah_walk")
     with pytest.raises(ValueError, match="num_envs"):
         VecEnv(ToyPoint(), num_envs=0)
+
+
+@pytest.mark.parametrize("name", ["toy_point", "cheetah_run", "drawer_open"])
+def test_task_info_matches_the_built_task(name):
+    """Presets read a task's domain and episode length without building it: those must be
+    what the built task says."""
+    import tasks
+
+    info, task = tasks.info(name), tasks.make(name)
+    assert (info.domain, info.episode_length, info.has_success) == (
+        task.domain, task.episode_length, task.has_success)

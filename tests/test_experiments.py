@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hprior_jax import train
+from hprior_jax.loop import host
+from hprior_jax.loop.run_dir import prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.experiments import grid, report
 from hprior_jax.experiments.scores import (normalized_score, paired_t_test, reference_curve,
@@ -89,6 +90,8 @@ def test_report_on_a_synthetic_results_directory(tmp_path):
               rounds=[(10, 1, 20, 0.3), (10, 2, 20, 0.5)])
     _fake_run(tmp_path, "walk", "prior", {1: [5, 30, 30], 2: [5, 20, 45]},
               rounds=[(10, 1, 20, 0.6), (10, 2, 20, 0.7)])
+    _fake_run(tmp_path, "walk", "rvar", {1: [5, 20, 30], 2: [5, 20, 30]})
+    _fake_run(tmp_path, "walk", "prior_nrp", {1: [5, 20, 30], 2: [5, 20, 30]})
     # MetaWorld-like task (success); SAC succeeds only from the third evaluation
     sac_s = {1: [0, 0, 1.0, 0.5], 2: [0, 0, 0.0, 0.5]}
     _fake_run(tmp_path, "open", "sac", {s: [0] * 4 for s in sac_s}, success=sac_s)
@@ -114,11 +117,15 @@ def test_report_on_a_synthetic_results_directory(tmp_path):
     text = md.read_text()
     assert "Table 6: normalized success rate" in text and "Table 7: normalized returns" in text
     assert text.index("Table 6") < text.index("Table 7")
-    assert "| walk | 1.25 | 0.75 |" in text
+    # columns in the registry's order: PRIOR, PEBBLE, then its variants
+    assert "| Env/Algorithm | PRIOR | PEBBLE | PRIOR_NRP | RVAR |" in text
+    assert "| walk | 1.25 | 0.75 | 1.00 | 1.00 |" in text
     # one task per metric: the per-task t-test has one pair, so no t; per seed it has two
     tests = list(csv.DictReader((out / "t_tests.csv").open()))
     assert {(r["metric"], r["baseline"], r["pairs"]) for r in tests} == {
-        ("true_return", "pebble", "1"), ("success", "pebble", "1")}
+        ("true_return", "pebble", "1"), ("true_return", "prior_nrp", "1"),
+        ("true_return", "rvar", "1"), ("success", "pebble", "1"),
+        ("success", "prior_nrp", "0"), ("success", "rvar", "0")}  # no MetaWorld runs of those
     by_seed = report.t_tests(report.compute_scores(report.discover(tmp_path), "mean-of-ratios",
                                                    0.0, False), pair_by="seed")
     walk = next(r for r in by_seed if r["metric"] == "true_return")
@@ -149,14 +156,14 @@ def test_grid_skips_complete_runs_and_resumes_interrupted_ones(tmp_path):
     seeds = (1, 2)
     # an interrupted run: 1 of 4 chunks, checkpointed at the stop
     cfg = grid.run_config(tmp_path, "toy_point", "sac", seeds, "smoke", TINY)
-    train.run(cfg, train.prepare_run_dir(cfg), progress=False, max_chunks=1)
+    host.run(cfg, prepare_run_dir(cfg), progress=False, max_chunks=1)
     assert grid.run_status(cfg) == "interrupted"
 
     calls = []
 
     def recording_train(cfg, run_dir, resume):
         calls.append((cfg.task, cfg.algo, resume))
-        train.run(cfg, run_dir, resume=resume, progress=False)
+        host.run(cfg, run_dir, resume=resume, progress=False)
 
     runs = grid.run_grid(tmp_path, ["toy_point", "toy_scaled"], ["sac"], seeds, "smoke", TINY,
                          train_fn=recording_train)

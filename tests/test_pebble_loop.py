@@ -5,8 +5,12 @@ import jax
 import numpy as np
 import pytest
 
-from hprior_jax import cli, presets, train
+from hprior_jax import cli, presets
+from hprior_jax.loop import host
+from hprior_jax.loop.engine import Engine
+from hprior_jax.loop.run_dir import prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
+from hprior_jax.methods.pebble import PebbleConfig
 from hprior_jax.networks.reward_ensemble import mean_reward
 
 SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2)
@@ -23,14 +27,15 @@ def _records(run_dir):
 
 def test_round_schedule_follows_bpref():
     cfg = presets.train_preset("toy_point", "pebble", "smoke", **SMALL)
-    trainer = train.make_trainer(cfg)
+    trainer = Engine(cfg).method
     # 20 seed + 20 pre-training steps, then a round every 40 steps; 40 queries in rounds of 10
     assert trainer.rounds() == [(40, 10), (80, 10), (120, 10), (160, 10)]
-    assert trainer.phase_at(0) == "random" and trainer.phase_at(20) == "unsup"
-    assert trainer.phase_at(40) == "sac"
+    engine = Engine(cfg)
+    assert engine.phase_at(0) == "random" and engine.phase_at(20) == "unsup"
+    assert engine.phase_at(40) == "sac"
     import dataclasses
     clipped = dataclasses.replace(cfg, pebble=dataclasses.replace(cfg.pebble, max_feedback=25))
-    assert train.make_trainer(clipped).rounds() == [(40, 10), (80, 10), (120, 5)]
+    assert Engine(clipped).method.rounds() == [(40, 10), (80, 10), (120, 5)]
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +44,7 @@ def toy_runs(tmp_path_factory):
     out = {}
     for task in ("toy_point", "toy_scaled"):
         cfg = _cfg(tmp, task, task=task, seeds=(7,))
-        out[task] = (cfg, train.run(cfg, train.prepare_run_dir(cfg), progress=False),
+        out[task] = (cfg, host.run(cfg, prepare_run_dir(cfg), progress=False),
                      tmp / task)
     return out
 
@@ -50,7 +55,7 @@ def test_true_reward_never_reaches_agent_or_reward_model(toy_runs):
     bit: the two tasks compile to different XLA programs, which round differently in the
     last ulp; a leak of a 3x reward would move everything by orders of magnitude more.)"""
     (_, a, _), (_, b, _) = toy_runs["toy_point"], toy_runs["toy_scaled"]
-    for x, y in zip(jax.tree.leaves((a.sac, a.extra.reward)), jax.tree.leaves((b.sac, b.extra.reward))):
+    for x, y in zip(jax.tree.leaves((a.sac, a.method.reward)), jax.tree.leaves((b.sac, b.method.reward))):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(np.asarray(a.replay.reward), np.asarray(b.replay.reward),
                                rtol=1e-4, atol=1e-6)
@@ -60,12 +65,12 @@ def test_true_reward_never_reaches_agent_or_reward_model(toy_runs):
 
 def test_buffer_holds_learned_reward_for_every_transition(toy_runs):
     cfg, rs, run_dir = toy_runs["toy_point"]
-    trainer = train.make_trainer(cfg)
+    trainer = Engine(cfg)
     size = int(np.asarray(rs.replay.size)[0])
     assert size == cfg.steps
-    params = jax.tree.map(lambda x: x[0], rs.extra.reward)
+    params = jax.tree.map(lambda x: x[0], rs.method.reward)
     expect = mean_reward(params, rs.replay.obs[0, :size], rs.replay.action[0, :size],
-                         trainer.reward_cfg)
+                         trainer.method.reward_cfg)
     # rows relabelled at the last round and rows stored since then both equal r_hat(s, a)
     np.testing.assert_allclose(np.asarray(rs.replay.reward[0, :size]), np.asarray(expect),
                                rtol=2e-5, atol=2e-6)
@@ -83,7 +88,7 @@ def test_feedback_and_reward_logs(toy_runs):
     # the learned reward tracks the true one on this easy task
     assert rounds[-1]["reward/true_corr"] > 0.8
     assert any("train/intrinsic_reward" in r for r in _records(run_dir))
-    assert int(np.asarray(rs.extra.prefs.count)[0]) == 40
+    assert int(np.asarray(rs.method.prefs.count)[0]) == 40
 
 
 def test_cli_pebble_with_short_flags(tmp_path):
@@ -101,8 +106,8 @@ def test_cli_pebble_with_short_flags(tmp_path):
 
 def test_pebble_config_errors(tmp_path):
     with pytest.raises(ValueError, match="--queries-per-round"):
-        _cfg(tmp_path, "x", pebble=presets.PebbleConfig(max_feedback=5, queries_per_round=10))
+        _cfg(tmp_path, "x", pebble=PebbleConfig(max_feedback=5, queries_per_round=10))
     with pytest.raises(ValueError, match="shorter than the episode"):
-        train.make_trainer(_cfg(tmp_path, "y", pebble=presets.PebbleConfig(segment_len=20)))
+        Engine(_cfg(tmp_path, "y", pebble=PebbleConfig(segment_len=20)))
     with pytest.raises(ValueError, match="multiple of 20"):
-        train.make_trainer(_cfg(tmp_path, "z", steps=210))
+        Engine(_cfg(tmp_path, "z", steps=210))

@@ -6,8 +6,12 @@ import jax
 import numpy as np
 import pytest
 
-from hprior_jax import presets, train
+from hprior_jax import presets
+from hprior_jax.loop import host
+from hprior_jax.loop.engine import Engine
+from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
+from hprior_jax.methods.prior import PriorConfig
 
 SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2,
              steps=100, seeds=(7,))
@@ -16,7 +20,9 @@ SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eva
 def _cfg(tmp_path, name, algo="prior", lam=5.0, **kw):
     cfg = presets.train_preset("toy_point", algo, "smoke", out=str(tmp_path / name), **{**SMALL, **kw})
     # toy episodes are 20 steps: a dynamics update every 60 steps (after the pre-training at 40)
-    return dataclasses.replace(cfg, prior=dataclasses.replace(cfg.prior, lam=lam, wm_every=60))
+    if hasattr(cfg, "prior"):
+        cfg = dataclasses.replace(cfg, prior=dataclasses.replace(cfg.prior, lam=lam, wm_every=60))
+    return cfg
 
 
 def _records(run_dir):
@@ -24,19 +30,18 @@ def _records(run_dir):
 
 
 def _run(cfg, **kw):
-    return train.run(cfg, train.prepare_run_dir(cfg), progress=False, **kw)
+    return host.run(cfg, prepare_run_dir(cfg), progress=False, **kw)
 
 
 def test_world_model_schedule(tmp_path):
-    trainer = train.make_trainer(_cfg(tmp_path, "s", steps=200))
+    method = Engine(_cfg(tmp_path, "s", steps=200)).method
     # feedback rounds as PEBBLE; the world model pre-trains at the first round (seed + unsup
     # = 40), then the dynamics model trains at every multiple of j = 60 after it
-    assert trainer.rounds() == [(40, 10), (80, 10), (120, 10), (160, 10)]
-    assert trainer.wm_steps() == [40, 60, 120, 180]
-    assert trainer.event_steps() == [40, 60, 80, 120, 160, 180]
-    rvar = _cfg(tmp_path, "r", steps=200)
-    rvar = dataclasses.replace(rvar, prior=dataclasses.replace(rvar.prior, variant="rvar"))
-    assert train.make_trainer(rvar).wm_steps() == []  # uniform α: no world model to train
+    assert method.rounds() == [(40, 10), (80, 10), (120, 10), (160, 10)]
+    assert method.ext.event_steps() == [40, 60, 120, 180]
+    assert method.event_steps() == [40, 60, 80, 120, 160, 180]
+    rvar = Engine(_cfg(tmp_path, "r", algo="rvar", steps=200)).method
+    assert rvar.event_steps() == [40, 80, 120, 160]  # uniform α: no world model to train
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +56,7 @@ def runs(tmp_path_factory):
 
 
 def _agent(rs):
-    return jax.tree.leaves((rs.sac, rs.extra.reward, rs.replay.reward))
+    return jax.tree.leaves((rs.sac, rs.method.reward, rs.replay.reward))
 
 
 def test_lambda_zero_trains_exactly_pebbles_agent(runs):
@@ -62,7 +67,7 @@ def test_lambda_zero_trains_exactly_pebbles_agent(runs):
     for a, b in zip(_agent(pebble), _agent(lam0)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
     # λ = 5 changes the reward model (the prior loss reaches the ensemble)
-    r_pebble, r_prior = (np.concatenate([np.ravel(x) for x in jax.tree.leaves(rs.extra.reward)])
+    r_pebble, r_prior = (np.concatenate([np.ravel(x) for x in jax.tree.leaves(rs.method.reward)])
                          for rs in (pebble, prior))
     assert np.abs(r_pebble - r_prior).max() > 1e-3
 
@@ -88,12 +93,12 @@ def test_prior_logs_world_model_and_credit_diagnostics(runs):
     for event, logged in zip([40, 60, 80], timed):
         assert event < logged <= event + cfg.chunk_steps
     # the world model trained: its step counters are in the RunState
-    assert int(np.asarray(rs.extra.wm.obs_steps)[0]) == cfg.prior.wm_pretrain_steps
-    assert int(np.asarray(rs.extra.wm.dyn_steps)[0]) == (cfg.prior.wm_pretrain_steps
+    assert int(np.asarray(rs.method.ext.wm.obs_steps)[0]) == cfg.prior.wm_pretrain_steps
+    assert int(np.asarray(rs.method.ext.wm.dyn_steps)[0]) == (cfg.prior.wm_pretrain_steps
                                                          + cfg.prior.wm_update_steps)
     # α of every stored pair is a distribution over the segment
-    count = int(np.asarray(rs.extra.prefs.count)[0])
-    alpha = np.asarray(rs.extra.credit.alpha1[0, :count])
+    count = int(np.asarray(rs.method.prefs.count)[0])
+    alpha = np.asarray(rs.method.ext.credit.alpha1[0, :count])
     np.testing.assert_allclose(alpha.sum(-1), 1.0, atol=1e-5)
     assert (alpha >= 0).all()
 
@@ -101,20 +106,18 @@ def test_prior_logs_world_model_and_credit_diagnostics(runs):
 def test_prior_resume_equals_uninterrupted(runs, tmp_path):
     cfg, full, _ = runs["prior"]
     cfg = dataclasses.replace(cfg, out=str(tmp_path / "split"))
-    run_dir = train.prepare_run_dir(cfg)
-    train.run(cfg, run_dir, progress=False, max_chunks=3)  # stops after the first round
-    resumed = train.run(train.load_run_config(run_dir), run_dir, resume=True, progress=False)
+    run_dir = prepare_run_dir(cfg)
+    host.run(cfg, run_dir, progress=False, max_chunks=3)  # stops after the first round
+    resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
     for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_prior_config_errors(tmp_path):
-    with pytest.raises(ValueError, match="variant"):
-        presets.PriorRunConfig(variant="bogus")
     with pytest.raises(ValueError, match="--prior.lam"):
-        presets.PriorRunConfig(lam=-1.0)
-    with pytest.raises(ValueError, match="rvar"):
-        presets.PriorRunConfig(wm_pretrain_steps=0)
+        PriorConfig(lam=-1.0)
+    with pytest.raises(ValueError, match="--algo rvar"):
+        PriorConfig(wm_pretrain_steps=0)
     cfg = presets.train_preset("cheetah_run", "prior", "paper")
     assert cfg.prior.lam == 5.0 and cfg.prior.wm_layers == 10 and cfg.prior.wm_every == 2000
     assert presets.train_preset("drawer_open", "prior", "paper").prior.lam == 1000.0
@@ -122,7 +125,7 @@ def test_prior_config_errors(tmp_path):
 
 def test_attention_maps_from_a_trained_run(runs, tmp_path):
     from hprior_jax import cli
-    from hprior_jax.prior.attention_map import attention_maps_for_run
+    from hprior_jax.experiments.attention_map import attention_maps_for_run
 
     _, _, run_dir = runs["prior"]
     out = tmp_path / "maps"

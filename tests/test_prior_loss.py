@@ -1,4 +1,4 @@
-"""PRIOR's auxiliary reward loss (hprior_jax.prior.loss) and its hook in PEBBLE reward training."""
+"""PRIOR's auxiliary reward loss (hprior_jax.prior.loss) as a reward term of PEBBLE's reward training."""
 import hprior_jax  # noqa: F401
 
 from functools import partial
@@ -10,9 +10,9 @@ import pytest
 
 from hprior_jax.buffers import preferences as ps
 from hprior_jax.networks import reward_ensemble as re
-from hprior_jax.pebble import preference as P
+from hprior_jax.pbrl import preference as P
 from hprior_jax.prior import loss as L
-from hprior_jax.prior.loss import PairCredit, PriorConfig
+from hprior_jax.prior.loss import PairCredit
 
 DS, DA, T, K = 3, 2, 6, 3
 SMALL = re.RewardConfig(hidden_sizes=(16, 16))
@@ -62,10 +62,11 @@ def test_pair_prior_loss_is_prior_loss_on_both_segments():
     err = lambda r, a: ((r - a * r.sum(-1, keepdims=True)) ** 2).mean(-1)[:, mask]
     ref = np.concatenate([err(r1, a1), err(r2, a2)], axis=1).mean(-1).sum()
     np.testing.assert_allclose(got, ref, rtol=1e-5)
-    lam = 7.0
-    extra = L.make_extra_loss(lam)(jnp.asarray(r1), jnp.asarray(r2), PairCredit(jnp.asarray(a1), jnp.asarray(a2)),
-                                   jnp.asarray(mask))
-    np.testing.assert_allclose(extra, lam * ref, rtol=1e-5)
+    term = L.prior_term(7.0, None)
+    value = term.loss(jnp.asarray(r1), jnp.asarray(r2), PairCredit(jnp.asarray(a1), jnp.asarray(a2)),
+                      jnp.asarray(mask))
+    np.testing.assert_allclose(value, ref, rtol=1e-5)  # the term is unweighted; λ is its weight
+    assert term.weight == 7.0 and term.name == "prior/loss"
 
 
 def test_prior_gradient_stops_at_alpha_and_return():
@@ -117,21 +118,17 @@ def test_rvar_alpha_is_uniform_over_valid_steps():
     np.testing.assert_allclose(L.rvar_alpha(a, m), np.broadcast_to([0.5, 0.5, 0, 0, 0, 0], (4, T)), rtol=1e-6)
     # RVAR target = R̂/|σ| whatever the credit
     r = jnp.asarray(np.random.default_rng(6).normal(size=(K, 4, T)).astype(np.float32))
-    tgt = L.prior_targets(r, L.variant_alpha(a, "rvar"))
+    tgt = L.prior_targets(r, L.variant_alpha(a, "uniform"))
     np.testing.assert_allclose(tgt, np.broadcast_to(np.asarray(r).sum(-1, keepdims=True) / T, (K, 4, T)),
                                rtol=1e-5)
 
 
 def test_unknown_variant_rejected():
     with pytest.raises(ValueError, match="variant"):
-        PriorConfig(variant="nrpp")
+        L.prior_term(1.0, None, variant="nrpp")
     with pytest.raises(ValueError, match="variant"):
-        L.variant_alpha(jnp.ones((2, T)), "uniform")
-    PriorConfig(variant="rvar", lam=1000.0)  # valid ones are accepted
-    st = ps.init(T, DS, DA, capacity=4)
-    with pytest.raises(ValueError, match="credit"):
-        L.prior_train_epoch(None, None, st, None, jax.random.key(0), tx=P.make_optimizer(),
-                            prior_cfg=PriorConfig(variant="prior"))
+        L.variant_alpha(jnp.ones((2, T)), "bogus")
+    L.prior_term(1000.0, None, variant="uniform")  # valid ones are accepted
 
 
 # ---------------------------------------------------------------- training with the prior
@@ -161,15 +158,16 @@ def _one_hot_credit(step):
 _traces = {"prior": 0}
 
 
-def _prior_train_counted(params, opt, store, credit, key, lam):
+def _prior_train_counted(params, opt, store, credit, key, lam, variant="raw"):
     _traces["prior"] += 1
-    return L.train_reward_with_prior(params, opt, store, credit, key, tx=TX, reward_cfg=SMALL, cfg=CFG,
-                                     lam=lam)
+    return P.train_reward(params, opt, store, key, tx=TX, reward_cfg=SMALL, cfg=CFG,
+                          terms=(L.prior_term(lam, credit, variant),))
 
 
-_train_prior = jax.jit(_prior_train_counted)
-_epoch = jax.jit(lambda p, o, s, c, k, lam: L.prior_train_epoch(p, o, s, c, k, tx=TX, reward_cfg=SMALL,
-                                                                 cfg=CFG, lam=lam))
+_train_prior = jax.jit(_prior_train_counted, static_argnames="variant")
+_epoch = jax.jit(lambda p, o, s, c, k, lam, variant="raw": P.train_epoch(
+    p, o, s, k, tx=TX, reward_cfg=SMALL, cfg=CFG, terms=(L.prior_term(lam, c, variant),)),
+    static_argnames="variant")
 _train_pebble = jax.jit(partial(P.train_reward, tx=TX, reward_cfg=SMALL, cfg=CFG))
 
 
@@ -185,19 +183,19 @@ def test_lambda_zero_is_pebble_and_lambda_is_traced():
         np.testing.assert_array_equal(a, b)
     for k in m_ref:
         np.testing.assert_array_equal(m_ref[k], m_0[k])
-    assert float(m_0["reward/extra_loss"]) == 0.0 and int(m_0["reward/epochs"]) == CFG.max_epochs
+    assert float(m_0["prior/loss"]) > 0.0 and int(m_0["reward/epochs"]) == CFG.max_epochs
     p_5, _, m_5 = _train_prior(p0, TX.init(p0), st, credit, key, jnp.float32(5.0))
     assert _traces["prior"] == traces0  # λ is a traced value: one program for a λ sweep
-    assert float(m_5["reward/extra_loss"]) > 0.0
+    assert float(m_5["prior/loss"]) > 0.0
     diff = max(float(jnp.abs(a - b).max()) for a, b in
                zip(jax.tree_util.tree_leaves(p_5), jax.tree_util.tree_leaves(p_ref)))
     assert diff > 1e-4  # the hook is live: λ > 0 changes the trained reward
 
 
-def test_epoch_metrics_report_lambda_times_prior_loss():
-    """With all pairs in one minibatch the epoch's extra_loss = λ·L_prior at the initial params
-    (each member sees a permutation of the same pairs; the loss is a mean over them) and the CE
-    part is PEBBLE's."""
+def test_epoch_metrics_report_the_unweighted_prior_loss():
+    """With all pairs in one minibatch the epoch's prior term = L_prior at the initial params
+    (each member sees a permutation of the same pairs; the loss is a mean over them), logged
+    without λ, and the CE part is PEBBLE's."""
     st = _store(4, 12)
     p0 = re.init_reward_ensemble(jax.random.key(5), DS, DA, SMALL)
     credit = _random_credit(6)
@@ -206,25 +204,24 @@ def test_epoch_metrics_report_lambda_times_prior_loss():
     n = 12
     s1 = re.member_rewards(p0, st.obs1[:n], st.act1[:n], SMALL)
     s2 = re.member_rewards(p0, st.obs2[:n], st.act2[:n], SMALL)
-    want = lam * L.pair_prior_loss(s1, s2, credit.alpha1[:n], credit.alpha2[:n])[0]
-    np.testing.assert_allclose(m["extra_loss"], want, rtol=1e-5)
+    want = L.pair_prior_loss(s1, s2, credit.alpha1[:n], credit.alpha2[:n])[0]
+    np.testing.assert_allclose(m["terms"]["prior/loss"], want, rtol=1e-5)
     ce = P.bt_loss_from_returns(s1.sum(-1), s2.sum(-1), st.labels[:n])[0]
     np.testing.assert_allclose(m["loss"], ce, rtol=1e-5)
 
 
-def test_rvar_needs_no_credit():
-    """RVAR without a world model = PRIOR's loss with a uniform credit."""
+def test_rvar_ignores_the_credit():
+    """RVAR = PRIOR's loss with a uniform credit, whatever credit it is given."""
     st = _store(8, 20)
     p0 = re.init_reward_ensemble(jax.random.key(9), DS, DA, SMALL)
     key = jax.random.key(10)
-    p_rvar, _, m_rvar = jax.jit(partial(L.prior_train_epoch, tx=TX, reward_cfg=SMALL, cfg=CFG,
-                                        prior_cfg=PriorConfig(lam=2.0, variant="rvar")))(
-        p0, TX.init(p0), st, None, key)
+    p_rvar, _, m_rvar = _epoch(p0, TX.init(p0), st, _random_credit(3), key, jnp.float32(2.0),
+                               variant="uniform")
     p_uni, _, m_uni = _epoch(p0, TX.init(p0), st, PairCredit.uniform(CAP, T), key, jnp.float32(2.0))
-    np.testing.assert_allclose(m_rvar["extra_loss"], m_uni["extra_loss"], rtol=1e-6)
+    np.testing.assert_allclose(m_rvar["terms"]["prior/loss"], m_uni["terms"]["prior/loss"], rtol=1e-6)
     for a, b in zip(jax.tree_util.tree_leaves(p_rvar), jax.tree_util.tree_leaves(p_uni)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
-    assert float(m_rvar["extra_loss"]) > 0.0
+    assert float(m_rvar["terms"]["prior/loss"]) > 0.0
 
 
 def test_one_hot_credit_moves_reward_onto_that_step():

@@ -6,9 +6,12 @@ import jax
 import numpy as np
 import pytest
 
-from hprior_jax import cli, train
+from hprior_jax import cli
+from hprior_jax.loop import host
+from hprior_jax.loop.engine import Engine
+from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.config import TrainConfig
+from hprior_jax.config import RunConfig
 
 TOY = dict(task="toy_point", steps=80, num_seed_steps=20, chunk_steps=20, eval_every=40,
            checkpoint_every=40, num_eval_episodes=2,
@@ -16,7 +19,7 @@ TOY = dict(task="toy_point", steps=80, num_seed_steps=20, chunk_steps=20, eval_e
 
 
 def _cfg(tmp_path, name="run", **kw):
-    return TrainConfig(**{**TOY, "out": str(tmp_path / name), **kw})
+    return RunConfig(**{**TOY, "out": str(tmp_path / name), **kw})
 
 
 def _leaves(rs):
@@ -24,11 +27,11 @@ def _leaves(rs):
 
 
 def test_seed_alone_equals_its_slot_in_a_vmapped_batch(tmp_path):
-    both = train.run(_cfg(tmp_path, "both", seeds=(12345, 23456)),
-                     train.prepare_run_dir(_cfg(tmp_path, "both", seeds=(12345, 23456))),
+    both = host.run(_cfg(tmp_path, "both", seeds=(12345, 23456)),
+                     prepare_run_dir(_cfg(tmp_path, "both", seeds=(12345, 23456))),
                      progress=False)
-    alone = train.run(_cfg(tmp_path, "alone", seeds=(12345,)),
-                      train.prepare_run_dir(_cfg(tmp_path, "alone", seeds=(12345,))),
+    alone = host.run(_cfg(tmp_path, "alone", seeds=(12345,)),
+                      prepare_run_dir(_cfg(tmp_path, "alone", seeds=(12345,))),
                       progress=False)
     for a, b in zip(_leaves(alone), _leaves(both)):
         np.testing.assert_allclose(a[0], b[0], rtol=1e-4, atol=1e-5)
@@ -39,12 +42,12 @@ def test_seed_alone_equals_its_slot_in_a_vmapped_batch(tmp_path):
 def test_resume_equals_uninterrupted(tmp_path):
     """2 chunks + checkpoint + restore + 2 chunks == 4 chunks."""
     cfg_full = _cfg(tmp_path, "full")
-    full = train.run(cfg_full, train.prepare_run_dir(cfg_full), progress=False)
+    full = host.run(cfg_full, prepare_run_dir(cfg_full), progress=False)
     cfg = _cfg(tmp_path, "split")
-    run_dir = train.prepare_run_dir(cfg)
-    train.run(cfg, run_dir, progress=False, max_chunks=2)
+    run_dir = prepare_run_dir(cfg)
+    host.run(cfg, run_dir, progress=False, max_chunks=2)
     assert (run_dir / "checkpoints").exists()
-    resumed = train.run(train.load_run_config(run_dir), run_dir, resume=True, progress=False)
+    resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
     for a, b in zip(_leaves(full), _leaves(resumed)):
         np.testing.assert_array_equal(a, b)
     rows = list(csv.DictReader(open(run_dir / "eval.csv")))
@@ -58,15 +61,15 @@ def test_refuses_non_empty_output_dir_and_keeps_it(tmp_path):
     out.mkdir()
     (out / "notes.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="--resume"):
-        train.prepare_run_dir(_cfg(tmp_path, "busy"))
+        prepare_run_dir(_cfg(tmp_path, "busy"))
     assert (out / "notes.txt").read_text() == "mine"
 
 
 def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path):
     cfg = _cfg(tmp_path, "nan", task="toy_nan", num_seed_steps=40)
-    run_dir = train.prepare_run_dir(cfg)
-    with pytest.raises(train.TrainingDiverged, match="--sac.lr.*--resume"):
-        train.run(cfg, run_dir, progress=False)
+    run_dir = prepare_run_dir(cfg)
+    with pytest.raises(host.TrainingDiverged, match="--sac.lr.*--resume"):
+        host.run(cfg, run_dir, progress=False)
     assert (run_dir / "error.txt").exists()
     assert (run_dir / "checkpoints" / "40").exists()  # the last good state is kept
     assert (run_dir / "config.json").exists()
@@ -127,7 +130,7 @@ def test_cli_unknown_task_lists_available(capsys):
 
 def test_random_phase_collects_without_updating(tmp_path):
     cfg = _cfg(tmp_path, "seedphase", num_seed_steps=40)
-    trainer = train.Trainer(cfg)
+    trainer = Engine(cfg)
     rs0 = trainer.init_seeds(cfg.seeds)
     init_actor = [np.asarray(x) for x in jax.tree.leaves(rs0.sac.actor)]
     rs, metrics = trainer.run_chunk(rs0, 0, 20)

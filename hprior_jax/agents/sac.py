@@ -1,7 +1,7 @@
 """Soft Actor-Critic as in BPref `agent/sac.py` (the SAC under every PbRL baseline).
 
 Pure functions over an `SACState` pytree; the static pieces (network shapes, optimizers,
-hyper-parameters) live in the `SAC` object. Reference: reference/pbrl_spec.md §1, appendix
+hyper-parameters) live in the `SAC` object. Reference: BPref `agent/sac.py`, appendix
 Table 2.
 
 - critic target  y = r + not_done * gamma * (min(Q1', Q2')(s', a') - alpha * log pi(a'|s'))

@@ -38,14 +38,16 @@ def init(capacity: int, obs_size: int, action_size: int) -> ReplayState:
         index=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32))
 
 
-def add(buf: ReplayState, obs, action, reward, next_obs, not_done, true_reward) -> ReplayState:
-    """Adds one transition (unbatched leaves)."""
-    i = buf.index
+def add(buf: ReplayState, obs, action, reward, next_obs, not_done, true_reward,
+        index=None) -> ReplayState:
+    """Adds one transition (unbatched leaves) at `index` (default `buf.index`)."""
+    i = buf.index if index is None else index
     cap = buf.capacity
+    put = lambda col, x: jax.lax.dynamic_update_index_in_dim(col, jnp.asarray(x, col.dtype), i, 0)
     return buf.replace(
-        obs=buf.obs.at[i].set(obs), action=buf.action.at[i].set(action),
-        reward=buf.reward.at[i].set(reward), next_obs=buf.next_obs.at[i].set(next_obs),
-        not_done=buf.not_done.at[i].set(not_done), true_reward=buf.true_reward.at[i].set(true_reward),
+        obs=put(buf.obs, obs), action=put(buf.action, action), reward=put(buf.reward, reward),
+        next_obs=put(buf.next_obs, next_obs), not_done=put(buf.not_done, not_done),
+        true_reward=put(buf.true_reward, true_reward),
         index=(i + 1) % cap, size=jnp.minimum(buf.size + 1, cap))
 
 

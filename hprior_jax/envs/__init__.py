@@ -91,3 +91,8 @@ def task_names() -> list[str]:
 
 def get_task(task_name: str) -> Task:
     return tasks.make(task_name)
+
+
+def task_info(task_name: str) -> tasks.TaskInfo:
+    """Domain, episode length, success flag: no model is built."""
+    return tasks.info(task_name)

@@ -12,7 +12,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from hprior_jax.config import ALGORITHMS, TrainConfig
+from hprior_jax.config import RunConfig
+from hprior_jax.methods import registry
 
 PAPER_SEEDS = (12345, 23456, 34567, 45678, 56789)  # appendix E
 
@@ -21,7 +22,7 @@ PAPER_SEEDS = (12345, 23456, 34567, 45678, 56789)  # appendix E
 class GridRun:
     task: str
     algo: str
-    cfg: TrainConfig
+    cfg: RunConfig
     status: str  # "complete" | "interrupted" | "new"
 
     @property
@@ -30,20 +31,20 @@ class GridRun:
 
 
 def run_config(root: Path, task: str, algo: str, seeds, budget: str,
-               overrides: dict) -> TrainConfig:
+               overrides: dict) -> RunConfig:
     from hprior_jax import presets
 
     out = str(Path(root) / task / algo)
     return presets.train_preset(task, algo, budget, seeds=tuple(seeds), out=out, **overrides)
 
 
-def run_status(cfg: TrainConfig) -> str:
+def run_status(cfg: RunConfig) -> str:
     """Whether `cfg.out` holds a finished run of `cfg`, an interrupted one, or nothing.
 
     A directory holding a run of another configuration is an error: mixing budgets or
     seeds in one table would be silent nonsense."""
     from hprior_jax.checkpoint import Checkpointer
-    from hprior_jax.train import load_run_config
+    from hprior_jax.loop.run_dir import load_run_config
 
     run_dir = Path(cfg.out)
     if not run_dir.exists() or not any(run_dir.iterdir()):
@@ -86,13 +87,15 @@ def _differing_fields(a: dict, b: dict, prefix: str = "") -> list[str]:
 
 def plan(root: Path, tasks, algos, seeds, budget: str = "reduced",
          overrides: dict | None = None) -> list[GridRun]:
-    """The grid's runs in execution order (SAC first: it is every task's reference)."""
-    unknown = [a for a in algos if a not in ALGORITHMS]
+    """The grid's runs in execution order (the reference first: it normalises every task)."""
+    unknown = [a for a in algos if a not in registry.names()]
     if unknown:
-        raise ValueError(f"unknown algorithm(s) {unknown}; available: {', '.join(ALGORITHMS)}")
+        raise ValueError(f"unknown algorithm(s) {unknown}; available: "
+                         f"{', '.join(registry.names())}")
     if not tasks or not algos:
         raise ValueError("give at least one --tasks and one --algos")
-    algos = sorted(dict.fromkeys(algos), key=lambda a: (a != "sac", list(algos).index(a)))
+    algos = sorted(dict.fromkeys(algos),
+                   key=lambda a: (a != registry.REFERENCE, list(algos).index(a)))
     runs = []
     for task in dict.fromkeys(tasks):
         for algo in algos:
@@ -105,9 +108,10 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
              overrides: dict | None = None, progress: bool = True, train_fn=None) -> list[GridRun]:
     """Runs every (task, algo) of the grid that is not complete; returns the plan.
 
-    `train_fn(cfg, run_dir, resume)` defaults to `hprior_jax.train.run` (tests pass a
+    `train_fn(cfg, run_dir, resume)` defaults to `hprior_jax.loop.host.run` (tests pass a
     recorder)."""
-    from hprior_jax import train
+    from hprior_jax.loop import host
+    from hprior_jax.loop.run_dir import prepare_run_dir
 
     root = Path(root)
     runs = plan(root, tasks, algos, seeds, budget, overrides)
@@ -117,7 +121,7 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
     (root / "grid.json").write_text(json.dumps(spec, indent=2, default=_jsonable) + "\n")
     if train_fn is None:
         def train_fn(cfg, run_dir, resume):
-            train.run(cfg, run_dir, resume=resume, progress=progress)
+            host.run(cfg, run_dir, resume=resume, progress=progress)
     for i, r in enumerate(runs, 1):
         head = f"[{i}/{len(runs)}] {r.task} {r.algo} (seeds {', '.join(map(str, seeds))})"
         if r.status == "complete":
@@ -126,7 +130,7 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
         print(f"{head}: {'resuming' if r.status == 'interrupted' else 'starting'} "
               f"in {r.run_dir}", flush=True)
         if r.status == "new":
-            train.prepare_run_dir(r.cfg)
+            prepare_run_dir(r.cfg)
         t0 = time.perf_counter()
         train_fn(r.cfg, r.run_dir, r.status == "interrupted")
         print(f"{head}: finished in {time.perf_counter() - t0:.0f} s", flush=True)

@@ -13,12 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from hprior_jax.experiments.scores import paired_t_test, task_scores
+from hprior_jax.methods import registry
 from hprior_jax.plotting import read_eval_csv
 
-REFERENCE = "sac"
-METHOD = "prior"
-# column order of the paper's tables; algorithms we have not built yet simply do not appear
-ALGO_ORDER = ("prior", "pebble", "surf", "rune", "mrn", "nrp", "rvar", "bisim")
+REFERENCE = registry.REFERENCE  # every score is normalised by it
+METHOD = registry.PROPOSED  # the t-tests compare every other method with it
 TABLE_NAME = {"success": "Table 6: normalized success rate (MetaWorld)",
               "true_return": "Table 7: normalized returns (DM Control)"}
 
@@ -44,7 +43,8 @@ def metric_of(run_dir: Path) -> str:
 
 
 def _order(algos) -> list[str]:
-    return sorted(algos, key=lambda a: (ALGO_ORDER.index(a) if a in ALGO_ORDER else 99, a))
+    """Columns in the registry's order (the paper's tables)."""
+    return registry.table_order(algos)
 
 
 def compute_scores(runs, how: str, min_reference: float, pair_by_seed: bool) -> list[dict]:
@@ -53,7 +53,7 @@ def compute_scores(runs, how: str, min_reference: float, pair_by_seed: bool) -> 
     for task, by_algo in sorted(runs.items()):
         if REFERENCE not in by_algo:
             print(f"warning: {task} has no {REFERENCE} run; its scores cannot be normalized "
-                  f"(run `hprior grid --tasks {task} --algos sac ...`)")
+                  f"(run `hprior grid --tasks {task} --algos {REFERENCE} ...`)")
             continue
         metric = metric_of(by_algo[REFERENCE])
         sac = read_eval_csv(by_algo[REFERENCE] / "eval.csv", metric)
@@ -268,17 +268,20 @@ def make_report(root: Path, out: Path | None = None, how: str = "mean-of-ratios"
 
 
 def _attention_section(runs, out: Path) -> list[str]:
-    from hprior_jax.prior.attention_map import attention_maps_for_run
+    from hprior_jax.experiments.attention_map import attention_maps_for_run
 
     lines = ["### World-model attention (appendix Figure 8 style; first labelled pair)", ""]
     for task, by_algo in sorted(runs.items()):
-        if METHOD not in by_algo or not (by_algo[METHOD] / "checkpoints").exists():
-            continue
-        try:
-            paths = attention_maps_for_run(by_algo[METHOD], pair=0, out=out / "attention" / task)
-        except (ValueError, FileNotFoundError) as e:  # e.g. no labelled pair yet
-            lines.append(f"{task}: no attention map ({e})")
-            continue
-        for path in paths:
-            lines.append(f"![{task} {path.stem}](attention/{task}/{path.name})")
+        for algo in _order(by_algo):
+            run_dir = by_algo[algo]
+            if not (registry.get(algo).has_world_model and (run_dir / "checkpoints").exists()):
+                continue
+            where = out / "attention" / task / algo
+            try:
+                paths = attention_maps_for_run(run_dir, pair=0, out=where)
+            except (ValueError, FileNotFoundError) as e:  # e.g. no labelled pair yet
+                lines.append(f"{task} {algo}: no attention map ({e})")
+                continue
+            for path in paths:
+                lines.append(f"![{task} {algo} {path.stem}](attention/{task}/{algo}/{path.name})")
     return lines + [""]

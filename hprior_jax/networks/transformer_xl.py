@@ -48,7 +48,7 @@ def torch_bias_init(fan_in: int):
 
 @dataclass(frozen=True)
 class TransformerXLConfig:
-    """Defaults = TWM `dyn_*` config (prior_spec.md §3.1): 10 layers, 4 heads x 64, d 256, FFN 1024."""
+    """Defaults = TWM `dyn_*` config (Robine et al. 2023): 10 layers, 4 heads x 64, d 256, FFN 1024."""
 
     embed_dim: int = 256
     num_heads: int = 4

@@ -1,4 +1,4 @@
-"""World-model attention -> per-step credit α (appendix C, prior_spec.md §1.3, §5 rows 1-5, 13-14).
+"""World-model attention -> per-step credit α (appendix C).
 
 Appendix C: "feed in a trajectory auto-regressively, i.e. first the first (state, action) tuple as
 a trajectory of size 1, then the next, and so on. At the final step take the attention vector
@@ -124,7 +124,8 @@ def pair_credit(params: wm.WorldModelParams, store: PreferenceStore, cfg: wm.Wor
     """α for both segments of every stored pair (rows 0..count-1), `chunk` pairs per forward.
 
     Cost scales with `count`, not capacity. Rows >= count keep their old value (`credit`, or the
-    uniform 1/T when None). Call after every world-model update (prior_spec.md §5 row 16).
+    uniform 1/T when None). α is read only by the reward update, so computing it once per
+    feedback round gives the same values as after every world-model update.
     """
     cap, t = store.labels.shape[0], store.obs1.shape[1]
     chunk = min(chunk, cap)

@@ -1,4 +1,4 @@
-"""PRIOR's auxiliary reward loss (prior_spec.md §1.4-1.6, appendix G.1, G.3, Table 4).
+"""PRIOR's auxiliary reward loss (appendix C.3, G.1, G.3, Table 4).
 
     r_target,t(σ) = sg(α_t(σ)) · sg(R̂_k(σ)),   R̂_k(σ) = Σ_t r̂_k(s_t, a_t)        (member k)
     L_prior,k     = mean over real pairs, both segments and t of (r̂_k(s_t, a_t) - r_target,t)²
@@ -11,42 +11,27 @@ Decisions (one reason each):
   disagreement that query selection uses.
 - Stop-gradient on R̂ and α: the target is a regression target (the world model is frozen during
   reward learning); the prior gradient then only moves per-step rewards toward α·R̂ and never the
-  return itself. WiseRL does not detach R̂ (prior_spec.md §4.4, item 6); not reproduced.
+  return itself. The authors' WiseRL code does not detach R̂; not reproduced.
 - Reduction: mean over steps, both segments and the real pairs of the minibatch, summed over
-  members like the CE in hprior_jax.pebble.preference (so λ weighs each member's own terms and
-  does not scale with K). Mean over t, not sum: λ's meaning depends on it (spec §5 row 9).
+  members like the CE in hprior_jax.pbrl.preference (so λ weighs each member's own terms and
+  does not scale with K). Mean over t, not sum: the choice sets what λ means (a sum over a
+  50-step segment would weigh the prior 50 times more).
 - Undiscounted R̂: the BT logits and the teacher use γ = 1.
-- Variants: "nrp" = softmax over steps of the min-max normalised α (appendix eq. 9; masked steps
-  excluded; a constant α gives uniform); "rvar" = uniform α = 1/|σ| (appendix G.1, target G/|τ|).
+- Variants of α: "raw" = the world model's credit (PRIOR); "nrp" = softmax over steps of the
+  min-max normalised α (appendix eq. 9, PRIOR-NRP; masked steps excluded; a constant α gives
+  uniform); "uniform" = 1/|σ| whatever α is (appendix G.1, RVAR: target G/|τ|).
   Note for NRP: min-max values lie in [0, 1], so the softmax ratio between any two steps is at most
   e — as written, eq. 9 flattens a peaked α rather than sharpening it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import flax.struct
 import jax
 import jax.numpy as jnp
-import optax
 
-from hprior_jax.buffers.preferences import PreferenceStore
-from hprior_jax.networks.reward_ensemble import Params, RewardConfig
-from hprior_jax.pebble.preference import PreferenceConfig, train_epoch, train_reward
+from hprior_jax.pbrl.preference import RewardTerm
 
-VARIANTS = ("prior", "nrp", "rvar")
-LAMBDA_PRESETS = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
-
-
-@dataclass(frozen=True)
-class PriorConfig:
-    lam: float = 5.0  # λ; see LAMBDA_PRESETS
-    variant: str = "prior"  # prior | nrp | rvar
-
-    def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise ValueError(f"variant={self.variant!r}; choose one of {VARIANTS}")
+VARIANTS = ("raw", "nrp", "uniform")
 
 
 @flax.struct.dataclass
@@ -80,11 +65,11 @@ def rvar_alpha(alpha: jax.Array, step_mask: jax.Array | None = None) -> jax.Arra
 
 
 def variant_alpha(alpha: jax.Array, variant: str, step_mask: jax.Array | None = None) -> jax.Array:
-    if variant == "prior":
+    if variant == "raw":
         return alpha
     if variant == "nrp":
         return nrp_alpha(alpha, step_mask)
-    if variant == "rvar":
+    if variant == "uniform":
         return rvar_alpha(alpha, step_mask)
     raise ValueError(f"variant={variant!r}; choose one of {VARIANTS}")
 
@@ -105,7 +90,7 @@ def prior_loss(step_rewards: jax.Array, alpha: jax.Array, mask: jax.Array | None
 
 
 def pair_prior_loss(step_r1: jax.Array, step_r2: jax.Array, alpha1: jax.Array, alpha2: jax.Array,
-                    mask: jax.Array | None = None, variant: str = "prior"):
+                    mask: jax.Array | None = None, variant: str = "raw"):
     """Prior loss on both segments of every pair: step_r*[K, B, T], alpha*[(K,) B, T], mask[B].
     -> (Σ_k L_prior,k, per-member [K])."""
     r = jnp.concatenate([step_r1, step_r2], axis=-2)
@@ -115,51 +100,17 @@ def pair_prior_loss(step_r1: jax.Array, step_r2: jax.Array, alpha1: jax.Array, a
 
 
 def target_saturation(step_rewards: jax.Array, alpha: jax.Array) -> jax.Array:
-    """Fraction of targets with |r_target| > 1, unreachable by a tanh reward (prior_spec.md §1.7)."""
+    """Fraction of targets with |r_target| > 1, unreachable by a tanh reward."""
     return jnp.mean(jnp.abs(prior_targets(step_rewards, alpha)) > 1.0)
 
 
-def make_extra_loss(lam, variant: str = "prior"):
-    """The `extra_loss` hook of hprior_jax.pebble.preference.train_epoch: λ · L_prior on the
-    minibatch (extra_batch = the PairCredit rows, [K, b, T])."""
-    def extra_loss(step_r1, step_r2, credit: PairCredit, mask):
-        return lam * pair_prior_loss(step_r1, step_r2, credit.alpha1, credit.alpha2, mask, variant)[0]
+def prior_term(lam, credit: PairCredit, variant: str = "raw") -> RewardTerm:
+    """The prior loss as a reward term of `train_reward`: weight λ (a float or a traced
+    scalar), `credit` = α of every stored pair (any credit for "uniform")."""
+    if variant not in VARIANTS:
+        raise ValueError(f"variant={variant!r}; choose one of {VARIANTS}")
 
-    return extra_loss
+    def loss(step_r1, step_r2, rows: PairCredit, mask):
+        return pair_prior_loss(step_r1, step_r2, rows.alpha1, rows.alpha2, mask, variant)[0]
 
-
-def _credit_or_uniform(store: PreferenceStore, credit: PairCredit | None, variant: str) -> PairCredit:
-    if credit is not None:
-        return credit
-    if variant != "rvar":
-        raise ValueError(f"variant {variant!r} needs the world model's credit; pass credit=")
-    return PairCredit.uniform(store.capacity, store.obs1.shape[1])
-
-
-def prior_train_epoch(params: Params, opt_state: Any, store: PreferenceStore,
-                      credit: PairCredit | None, key: jax.Array, *, tx: optax.GradientTransformation,
-                      reward_cfg: RewardConfig = RewardConfig(),
-                      cfg: PreferenceConfig = PreferenceConfig(),
-                      prior_cfg: PriorConfig = PriorConfig(), lam: jax.Array | float | None = None):
-    """pebble.preference.train_epoch with CE + λ·L_prior. `credit` holds α of every stored pair
-    (from attention.pair_credit; None only for "rvar"); `lam` overrides prior_cfg.lam (may be a
-    traced scalar for λ sweeps). Metrics as train_epoch plus "extra_loss" = mean λ·L_prior."""
-    lam = prior_cfg.lam if lam is None else lam
-    return train_epoch(params, opt_state, store, key, tx=tx, reward_cfg=reward_cfg, cfg=cfg,
-                       extra_loss=make_extra_loss(lam, prior_cfg.variant),
-                       extra_data=_credit_or_uniform(store, credit, prior_cfg.variant))
-
-
-def train_reward_with_prior(params: Params, opt_state: Any, store: PreferenceStore,
-                            credit: PairCredit | None, key: jax.Array, *,
-                            tx: optax.GradientTransformation,
-                            reward_cfg: RewardConfig = RewardConfig(),
-                            cfg: PreferenceConfig = PreferenceConfig(),
-                            prior_cfg: PriorConfig = PriorConfig(),
-                            lam: jax.Array | float | None = None):
-    """pebble.preference.train_reward (same epochs and early stop on BT accuracy) with
-    CE + λ·L_prior. Metrics as train_reward plus "reward/extra_loss" = λ·L_prior (last epoch)."""
-    lam = prior_cfg.lam if lam is None else lam
-    return train_reward(params, opt_state, store, key, tx=tx, reward_cfg=reward_cfg, cfg=cfg,
-                        extra_loss=make_extra_loss(lam, prior_cfg.variant),
-                        extra_data=_credit_or_uniform(store, credit, prior_cfg.variant))
+    return RewardTerm(name="prior/loss", weight=lam, loss=loss, data=credit)

@@ -1,4 +1,4 @@
-"""TWM-style world model for vector states and continuous actions (appendix C; prior_spec.md §3.4).
+"""TWM-style world model for vector states and continuous actions (appendix C; TWM, Robine et al. 2023).
 
 Observation model (appendix C.1): MLP encoder obs -> 512 -> 512 -> 32 (SiLU), decoder
 32 -> 512 -> 512 -> obs_size. The latent is a deterministic continuous 32-vector: the appendix

@@ -1,0 +1,156 @@
+"""The chunk engine: env, SAC, the method's hooks, compiled `jit(vmap(chunk))` programs.
+
+Every leaf of `RunState` has a leading seed axis. The schedule (the method's phases and
+events) is decided on the host from the global step, which is the same for every seed; a
+chunk is a `lax.scan` over env steps compiled once per length as
+`jit(vmap(chunk, in_axes=(0, None)), donate_argnums=0)`. The global step enters unbatched,
+so per-step decisions derived from it (target-network EMA, episode ends, the replay ring
+position) stay scalar. The engine holds no mutable run state and names no method.
+"""
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hprior_jax.agents.sac import SAC
+from hprior_jax.buffers import replay
+from hprior_jax.envs import make_env
+from hprior_jax.evaluate import evaluate_policy
+from hprior_jax.loop.state import RunState
+from hprior_jax.methods import registry
+
+
+class Engine:
+    def __init__(self, cfg):
+        self.cfg = cfg
+        self.env = make_env(cfg.task, num_envs=1)
+        self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes)
+        self.task = self.env.task
+        self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
+        self._compiled: dict = {}
+        self.compile_seconds: dict[str, float] = {}
+        self.method = registry.get(cfg.algo).build(cfg, self)
+        self.phases = self.method.phases()
+        starts = [p.start for p in self.phases]
+        assert starts[0] == 0 and starts == sorted(starts), "phases must start in order at 0"
+
+    # -- schedule (host side, the same for every seed) ---------------------------------------
+    def phase_at(self, step: int) -> str:
+        return self.phases[self._phase_index(step)].name
+
+    def _phase_index(self, step: int) -> int:
+        return sum(step >= p.start for p in self.phases[1:])
+
+    def phase_metrics(self, phase: str) -> tuple[str, ...]:
+        """The `train/` metrics meaningful in `phase` (others are placeholders)."""
+        return next(p.metrics for p in self.phases if p.name == phase)
+
+    def event_steps(self) -> list[int]:
+        return self.method.event_steps()
+
+    def chunk_plan(self, step: int) -> tuple[str, int]:
+        """Phase and length of the next chunk: never crosses a phase change, event,
+        evaluation, checkpoint or the end of training."""
+        cfg = self.cfg
+        bounds = [cfg.steps, _next_multiple(step, cfg.chunk_steps),
+                  _next_multiple(step, cfg.eval_every), _next_multiple(step, cfg.checkpoint_every)]
+        bounds += [b for b in (*(p.start for p in self.phases), *self.event_steps()) if b > step]
+        return self.phase_at(step), min(bounds) - step
+
+    # -- pure functions (per seed) --------------------------------------------------------
+    def init(self, seed_key: jax.Array, capacity: int | None = None) -> RunState:
+        k_sac, k_env, k_run, k_method = jax.random.split(seed_key, 4)
+        capacity = capacity or self.cfg.capacity
+        return RunState(
+            sac=self.sac.init(k_sac),
+            replay=replay.init(capacity, self.env.obs_size, self.env.action_size),
+            env=self.env.reset(k_env), key=k_run, method=self.method.init(k_method))
+
+    def chunk(self, rs: RunState, step0: jax.Array, *, length: int):
+        """`length` env steps from global step `step0`. A chunk never crosses a phase change,
+        so the phase is an unbatched `lax.switch` index: a real branch under vmap, and one
+        compiled program for every phase."""
+        phase = sum((step0 >= p.start).astype(jnp.int32) for p in self.phases[1:])
+        metric_keys = sorted({k for p in self.phases for k in p.metrics})
+
+        def branch(fn):
+            # The replay buffer enters the switch read-only and does not leave it, and the
+            # insert position leaves it: XLA then orders the in-place insert after the switch's
+            # reads of the buffer. Otherwise it may schedule the insert of values that do not
+            # depend on the action (the stored obs) first, and copies the whole buffer on every
+            # step to keep the switch's input intact (cost O(capacity) per env step).
+            def run(rs, obs, step, keys):
+                action, rs_out, m = fn(rs, obs, step, keys)
+                return (action, rs_out.replace(replay=None), step % rs.replay.capacity,
+                        {k: m.get(k, jnp.zeros((), jnp.float32)) for k in metric_keys})
+            return run
+
+        branches = [branch(p.step) for p in self.phases]
+
+        def body(rs: RunState, i):
+            step = step0 + i
+            key, k_act, k_sample, k_update, k_reset = jax.random.split(rs.key, 5)
+            obs = rs.env.task.obs[0]
+            action, rest, write_at, metrics = jax.lax.switch(
+                phase, branches, rs, obs, step, (k_act, k_sample, k_update))
+            rs = rest.replace(replay=rs.replay)
+            env_state, tr = self.env.step(rs.env, action[None], step, k_reset)
+            reward = self.method.stored_reward(rs, tr.obs[0], tr.action[0], tr.true_reward[0])
+            # every seed has taken `step` steps, so the ring position is the same for all and
+            # unbatched under vmap: a dynamic-update-slice, not a scatter
+            buf = replay.add(rs.replay, tr.obs[0], tr.action[0], reward, tr.next_obs[0],
+                             1.0 - tr.terminated[0].astype(jnp.float32), tr.true_reward[0],
+                             index=write_at)
+            metrics = dict(metrics)
+            metrics.update({
+                "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),
+                "episode/true_return": tr.episode_return[0],
+                "episode/success": tr.episode_success[0],
+            })
+            return rs.replace(replay=buf, env=env_state, key=key), metrics
+
+        return jax.lax.scan(body, rs, jnp.arange(length, dtype=jnp.int32))
+
+    def evaluate(self, actor_params, key: jax.Array):
+        policy = lambda obs: self.sac.act(actor_params, obs, key, deterministic=True)
+        return evaluate_policy(self.eval_env, policy, key)
+
+    # -- compiled, vmapped over seeds ---------------------------------------------------------
+    def compile(self, name: str, fn, *args):
+        """Compiles ahead of time so compile time is measured apart from run time."""
+        if name not in self._compiled:
+            t0 = time.perf_counter()
+            self._compiled[name] = fn.lower(*args).compile()
+            self.compile_seconds[name] = time.perf_counter() - t0
+        return self._compiled[name]
+
+    def init_seeds(self, seeds, capacity: int | None = None) -> RunState:
+        keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+        return jax.jit(jax.vmap(partial(self.init, capacity=capacity)))(keys)
+
+    def compiled_chunk(self, rs: RunState, step0: int, length: int):
+        """The compiled program of `length` env steps (one per length, every phase)."""
+        fn = jax.jit(jax.vmap(partial(self.chunk, length=length), in_axes=(0, None)),
+                     donate_argnums=0)
+        return self.compile(f"chunk/{length}", fn, rs, np.int32(step0))
+
+    def run_chunk(self, rs: RunState, step0: int, length: int):
+        return self.compiled_chunk(rs, step0, length)(rs, np.int32(step0))
+
+    def run_event(self, rs: RunState, step: int):
+        return self.method.run_event(rs, step)
+
+    def run_eval(self, rs: RunState, seeds, step: int):
+        # keys derived from (seed, step) only: evaluation never touches the training stream
+        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(s), 0x5EED0000 + step)
+                          for s in seeds])
+        fn = jax.jit(jax.vmap(self.evaluate))
+        return self.compile("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
+
+
+def _next_multiple(step: int, every: int) -> int:
+    return (step // every + 1) * every

@@ -1,0 +1,349 @@
+"""PEBBLE (Lee et al. 2021) on the shared training loop (BPref `train_PEBBLE.py`).
+
+Schedule per seed, identical for every seed (so it is decided on the host):
+  [0, seed)                uniform-random actions, no updates
+  [seed, seed+unsup)       SAC whose critic target uses the k-NN state-entropy reward
+  seed+unsup               first feedback round (always uniform queries), relabel the whole
+                           buffer, reset the critic, `reset_update` SAC steps
+  every num_interact after another round (configured query selection) while budget remains
+  otherwise                one SAC step per env step on the learned reward
+
+Deliberate differences from BPref, each harmless and stated here: BPref skips the SAC
+update at exactly step `seed` and at step `seed+unsup` (its if/elif chain); we update there
+too (2 extra updates in a run). The teacher reads true rewards from the replay buffer's
+`true_reward` column; nothing that trains (SAC, the reward ensemble) ever reads it.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from hprior_jax.agents.sac import SACConfig
+from hprior_jax.buffers import preferences, replay
+from hprior_jax.envs import task_info
+from hprior_jax.methods.base import (RANDOM, SAC_METRICS, SAC_PHASE, Method, Phase,
+                                     random_step, sac_step)
+from hprior_jax.methods.registry import MethodSpec
+from hprior_jax.loop.state import RunState
+from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
+from hprior_jax.pbrl.preference import PreferenceConfig, RewardTerm, make_optimizer, train_reward
+from hprior_jax.pbrl.query import select_queries
+from hprior_jax.pbrl.relabel import relabel_rewards
+from hprior_jax.pbrl.state_entropy import (RunningMeanStd, init_running_mean_std,
+                                           state_entropy_reward)
+from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
+
+UNSUP = "unsup"
+RETURN_WINDOW = 10  # BPref: teacher thresholds from the mean return of the last 10 episodes
+
+
+@dataclass(frozen=True)
+class PebbleConfig:
+    """Preference learning: schedule, label budget, query selection, reward model, teacher."""
+
+    num_unsup_steps: int = 9000
+    """State-entropy pre-training steps after the seed steps (BPref scripts: 9000)."""
+    num_interact: int = 20_000
+    """Env steps between feedback rounds (appendix Table 3: 20k walker/cheetah, 30k quadruped,
+    500 MetaWorld)."""
+    max_feedback: int = 1000
+    """Total queries shown to the teacher (`--feedback`)."""
+    queries_per_round: int = 100
+    """Queries per round (`--queries-per-round`); the last round is clipped to the budget."""
+    segment_len: int = 50
+    feed_type: Literal["uniform", "disagreement", "entropy"] = "disagreement"
+    """Query selection after the first round (which is always uniform, as BPref).
+    Disagreement is what SURF, RUNE, MRN and PRIOR's baselines run with."""
+    large_batch: int = 10
+    """Candidate pool = queries_per_round * large_batch for disagreement/entropy."""
+    trajectory_episodes: int = 100
+    """Queries come from the last N complete episodes (BPref `max_size`)."""
+    reset_update: int = 100
+    """SAC gradient steps right after the critic reset that ends pre-training."""
+    knn_k: int = 5
+    reward_lr: float = 3e-4
+    reward_epochs: int = 50
+    """Max epochs per round (BPref scripts: 50 DMC, 10 MetaWorld); early stop at 97% acc."""
+    reward_batch: int = 128
+    reward_hidden: int = 256
+    reward_depth: int = 3
+    ensemble_size: int = 3
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    bpref_entropy_mean_bug: bool = False
+    """Reproduce BPref's running-mean bug in the state-entropy normaliser (utils.py#L240)."""
+
+    def __post_init__(self):
+        for name in ("num_interact", "max_feedback", "queries_per_round", "segment_len",
+                     "large_batch", "trajectory_episodes", "knn_k", "reward_epochs",
+                     "reward_batch", "reward_hidden", "ensemble_size"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"--pebble.{name.replace('_', '-')} must be positive, "
+                                 f"got {getattr(self, name)}")
+        if self.num_unsup_steps < 0 or self.reset_update < 0:
+            raise ValueError("--pebble.num-unsup-steps and --pebble.reset-update must be >= 0")
+        if self.queries_per_round > self.max_feedback:
+            raise ValueError(f"--queries-per-round ({self.queries_per_round}) exceeds "
+                             f"--feedback ({self.max_feedback}); lower it or raise the budget")
+
+    @property
+    def num_rounds(self) -> int:
+        return -(-self.max_feedback // self.queries_per_round)
+
+
+@struct.dataclass
+class PebbleState:
+    reward: dict  # stacked ensemble params, leading axis K
+    reward_opt: optax.OptState
+    prefs: preferences.PreferenceStore
+    entropy_stats: RunningMeanStd
+    ext: Any = None  # the state of an `Extension` (PRIOR: world model, credit, λ)
+
+
+class Extension:
+    """What a method built on PEBBLE adds to it (PRIOR, RVAR): its own state, its own
+    host-side events, and reward terms beside the preference cross-entropy. The default adds
+    nothing: PEBBLE itself."""
+
+    def init(self, key: jax.Array):
+        return None
+
+    def event_steps(self) -> list[int]:
+        return []
+
+    def run_event(self, rs: RunState, step: int) -> tuple[RunState, dict]:
+        raise NotImplementedError
+
+    def reward_terms(self, ms: PebbleState) -> tuple[tuple[RewardTerm, ...], PebbleState]:
+        """The terms of this round's reward update (called inside the compiled round, before
+        it); may update `ms.ext` (e.g. PRIOR's credit of the stored pairs)."""
+        return (), ms
+
+    def round_metrics(self, ms: PebbleState, reward_cfg: RewardConfig) -> dict:
+        """Scalar diagnostics after the round's reward update (inside the compiled round)."""
+        return {}
+
+
+class Pebble(Method):
+    def __init__(self, cfg, kit, extension: Extension | None = None):
+        super().__init__(cfg, kit)
+        self.ext = extension or Extension()
+        p = self.pcfg = cfg.pebble
+        L = kit.env.episode_length
+        if p.segment_len >= L:
+            raise ValueError(f"--pebble.segment-len {p.segment_len} must be shorter than the "
+                             f"episode ({L} steps) of {cfg.task}")
+        if cfg.capacity % L or cfg.capacity < cfg.steps:
+            raise ValueError(f"PbRL reads episodes straight from the replay buffer, so it must "
+                             f"hold every step in whole episodes: make --steps a multiple of "
+                             f"{L} and leave --replay-capacity at 0")
+        if self.first_round_step >= cfg.steps:
+            raise ValueError(f"no feedback round fits: the first comes at step "
+                             f"{self.first_round_step} (seed + unsup steps) but --steps is "
+                             f"{cfg.steps}; train longer or shorten pre-training")
+        self.reward_cfg = RewardConfig(hidden_sizes=(p.reward_hidden,) * p.reward_depth,
+                                       ensemble_size=p.ensemble_size)
+        self.pref_cfg = PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
+                                         lr=p.reward_lr)
+        self.reward_tx = make_optimizer(self.pref_cfg)
+
+    # -- schedule --------------------------------------------------------------------------
+    @property
+    def first_round_step(self) -> int:
+        return self.cfg.num_seed_steps + self.pcfg.num_unsup_steps
+
+    def phases(self):
+        kit = self.kit
+        return (Phase(RANDOM, 0, random_step(kit)),
+                Phase(UNSUP, self.cfg.num_seed_steps,
+                      sac_step(kit, reward_fn=self._intrinsic_reward),
+                      SAC_METRICS + ("train/intrinsic_reward",)),
+                Phase(SAC_PHASE, self.first_round_step, sac_step(kit), SAC_METRICS))
+
+    def rounds(self) -> list[tuple[int, int]]:
+        """(step, queries) of every feedback round: the last is clipped to the budget."""
+        p = self.pcfg
+        out = []
+        for r in range(p.num_rounds):
+            step = self.first_round_step + r * p.num_interact
+            if step >= self.cfg.steps:
+                break
+            out.append((step, min(p.queries_per_round, p.max_feedback - r * p.queries_per_round)))
+        return out
+
+    def event_steps(self):
+        return sorted({s for s, _ in self.rounds()} | set(self.ext.event_steps()))
+
+    # -- per-seed pure functions -----------------------------------------------------------
+    def init(self, key):
+        p, env = self.pcfg, self.kit.env
+        params = init_reward_ensemble(key, env.obs_size, env.action_size, self.reward_cfg)
+        return PebbleState(
+            reward=params, reward_opt=self.reward_tx.init(params),
+            prefs=preferences.init(p.segment_len, env.obs_size, env.action_size,
+                                   capacity=p.max_feedback),
+            entropy_stats=init_running_mean_std(), ext=self.ext.init(key))
+
+    def stored_reward(self, rs, obs, action, true_reward):
+        # BPref stores r_hat(s, a) of the current ensemble with each new transition
+        return mean_reward(rs.method.reward, obs[None], action[None], self.reward_cfg)[0]
+
+    def _intrinsic_reward(self, rs: RunState, batch):
+        buf = rs.replay
+        r, stats = state_entropy_reward(batch.obs, buf.obs, buf.size, rs.method.entropy_stats,
+                                        k=self.pcfg.knn_k,
+                                        bpref_mean_bug=self.pcfg.bpref_entropy_mean_bug)
+        rs = rs.replace(method=rs.method.replace(entropy_stats=stats))
+        return r, rs, {"train/intrinsic_reward": jnp.mean(r)}
+
+    def feedback_round(self, rs: RunState, num_queries: jax.Array, *, first: bool,
+                       queries: int):
+        """Query -> teacher -> reward update -> relabel (and, after the first round, the
+        critic reset and `reset_update` SAC steps). Returns (rs, scalar metrics)."""
+        p, L = self.pcfg, self.kit.env.episode_length
+        buf, ms = rs.replay, rs.method
+        key, k_query, k_teacher, k_reward, k_reset = jax.random.split(rs.key, 5)
+
+        # the last `trajectory_episodes` complete episodes, straight from the replay buffer
+        n_stored = buf.capacity // L
+        window = min(p.trajectory_episodes, n_stored)
+        n_episodes = buf.size // L
+        start = jnp.maximum(n_episodes - window, 0)
+        episodes = lambda x: jax.lax.dynamic_slice_in_dim(
+            x.reshape((n_stored, L) + x.shape[1:]), start, window, axis=0)
+        ep_obs, ep_act, ep_true = episodes(buf.obs), episodes(buf.action), episodes(buf.true_reward)
+        count = jnp.minimum(n_episodes, window)
+
+        pairs = select_queries(k_query, ms.reward, ep_obs, ep_act, ep_true, count,
+                               rule="uniform" if first else p.feed_type, mb_size=queries,
+                               segment_len=p.segment_len, large_batch=p.large_batch,
+                               num_queries=num_queries, reward_cfg=self.reward_cfg)
+        returns = ep_true.sum(-1)
+        recent = (jnp.arange(window) < count) & (jnp.arange(window) >= count - RETURN_WINDOW)
+        mean_return = jnp.sum(returns * recent) / jnp.maximum(recent.sum(), 1)
+        thresholds = compute_thresholds(p.teacher, mean_return, p.segment_len, L,
+                                        first_round=first)
+        out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, p.teacher, thresholds)
+        keep = out.valid & pairs.mask
+        prefs = preferences.add(ms.prefs, preferences.PreferenceBatch(
+            pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
+        ms, rmetrics = self._train_reward(ms.replace(prefs=prefs), k_reward)
+        reward = relabel_rewards(ms.reward, buf.obs, buf.action, buf.reward, buf.size,
+                                 reward_cfg=self.reward_cfg)
+        buf = buf.replace(reward=reward)
+        sac = rs.sac
+        if first:
+            sac = self._reset_critic_and_update(sac, buf, k_reset)
+        metrics = {
+            "feedback/queries": num_queries.astype(jnp.float32),
+            "feedback/labeled": jnp.sum(keep).astype(jnp.float32),
+            "feedback/skipped": jnp.sum(pairs.mask & ~out.valid).astype(jnp.float32),
+            "feedback/equal": jnp.sum(keep & out.equal).astype(jnp.float32),
+            "feedback/mistakes": jnp.sum(keep & out.mistake & ~out.equal).astype(jnp.float32),
+            "feedback/total_labeled": prefs.count.astype(jnp.float32),
+            "reward/true_corr": masked_correlation(reward, buf.true_reward, buf.size),
+            **rmetrics,
+        }
+        return rs.replace(sac=sac, replay=buf, method=ms, key=key), metrics
+
+    def _train_reward(self, ms: PebbleState, key: jax.Array):
+        """The reward-ensemble update of a round on every stored pair (`ms.prefs`), with the
+        extension's terms. -> (ms with the new reward params and optimiser state, scalar
+        metrics: `reward/` and each term's unweighted loss under its name)."""
+        terms, ms = self.ext.reward_terms(ms)
+        params, opt, m = train_reward(ms.reward, ms.reward_opt, ms.prefs, key,
+                                      tx=self.reward_tx, reward_cfg=self.reward_cfg,
+                                      cfg=self.pref_cfg, terms=terms)
+        ms = ms.replace(reward=params, reward_opt=opt)
+        m = {k: (v.astype(jnp.float32) if k == "reward/epochs" else v) for k, v in m.items()
+             if k != "reward/train_acc_member"}
+        return ms, {**m, **self.ext.round_metrics(ms, self.reward_cfg)}
+
+    def _reset_critic_and_update(self, sac_state, buf, key):
+        """BPref `reset_critic` + `update_after_reset`: target EMA when index % 2 == 0."""
+        k_init, k_updates = jax.random.split(key)
+        sac_state = self.kit.sac.reset_critic(sac_state, k_init)
+
+        def body(state, i):
+            k_sample, k_update = jax.random.split(jax.random.fold_in(k_updates, i))
+            batch = replay.sample(buf, k_sample, self.kit.sac.cfg.batch_size)
+            return self.kit.sac.update(state, batch, k_update, i)[0], None
+
+        return jax.lax.scan(body, sac_state, jnp.arange(self.pcfg.reset_update))[0]
+
+    # -- host side -------------------------------------------------------------------------
+    def run_event(self, rs: RunState, step: int):
+        metrics = {}
+        if step in self.ext.event_steps():  # e.g. PRIOR's world model, before the round
+            rs, metrics = self.ext.run_event(rs, step)
+        rounds = dict(self.rounds())
+        if step in rounds:
+            first = step == self.first_round_step
+            fn = jax.jit(jax.vmap(partial(self.feedback_round, first=first,
+                                          queries=self.pcfg.queries_per_round),
+                                  in_axes=(0, None)), donate_argnums=0)
+            n = np.int32(rounds[step])
+            name = "feedback_round/first" if first else "feedback_round"
+            rs, round_metrics = self.kit.compile(name, fn, rs, n)(rs, n)
+            metrics = {**metrics, **round_metrics}
+        return rs, metrics
+
+
+def masked_correlation(x: jax.Array, y: jax.Array, n: jax.Array) -> jax.Array:
+    """Pearson correlation of x[:n] and y[:n] (a diagnostic: learned vs true reward)."""
+    w = (jnp.arange(x.shape[0]) < n).astype(jnp.float32)
+    m = jnp.maximum(w.sum(), 1.0)
+    xc = (x - jnp.sum(w * x) / m) * w
+    yc = (y - jnp.sum(w * y) / m) * w
+    return jnp.sum(xc * yc) / jnp.sqrt(jnp.sum(xc**2) * jnp.sum(yc**2) + 1e-12)
+
+
+# appendix Table 3 "Learning rate PEBBLE": the values match BPref's per-task SAC learning
+# rates (walker 5e-4, quadruped 1e-4, MetaWorld 3e-4), so we read them as the SAC learning
+# rate of PbRL runs; the reward model keeps BPref's reward_lr 3e-4 (--pebble.reward-lr).
+PBRL_SAC_LR = {"cheetah_run": 5e-4, "walker_walk": 5e-4, "quadruped_walk": 1e-4}
+METAWORLD_LR = 3e-4
+# appendix Table 3: steps between queries
+PBRL_INTERACT = {"cheetah_run": 20_000, "walker_walk": 20_000, "quadruped_walk": 30_000}
+METAWORLD_INTERACT = 500  # appendix Table 3 (BPref's MetaWorld scripts use 5000)
+
+
+def pebble_preset(task: str, preset: str, sac: SACConfig) -> dict:
+    """PEBBLE-family settings: BPref's schedule (1000 seed + 9000 unsupervised steps) and the
+    appendix Table 3 budgets. Table 3 lists DMC budgets 1000/100 and 100/10 and four MetaWorld
+    budgets (10000/50, 4000/20, 2000/25, 400/10) without saying which task used which; we
+    default to the first of each (override with --feedback / --queries-per-round)."""
+    info = task_info(task)
+    dmc = info.domain == "dm_control"
+    sac = dataclasses.replace(sac, lr=PBRL_SAC_LR.get(task, METAWORLD_LR))
+    if preset == "paper":
+        pebble = PebbleConfig(
+            num_interact=PBRL_INTERACT.get(task, METAWORLD_INTERACT),
+            max_feedback=1000 if dmc else 10_000, queries_per_round=100 if dmc else 50,
+            reward_epochs=50 if dmc else 10)
+        return dict(num_seed_steps=1000, pebble=pebble, sac=sac)
+    if preset == "reduced":
+        # Table 3's small budgets (DMC 100 labels, 10 per round) spent by step 46k of 50k: a
+        # round every 4000 steps instead of 20k; MetaWorld keeps 20 per round, 200 in all
+        pebble = PebbleConfig(num_interact=4000, max_feedback=100 if dmc else 200,
+                              queries_per_round=10 if dmc else 20,
+                              reward_epochs=50 if dmc else 10)
+        return dict(num_seed_steps=1000, pebble=pebble, sac=sac)
+    # smoke: a round every 2 episodes after 1 random + 1 pre-training episode
+    episode = info.episode_length
+    pebble = PebbleConfig(num_unsup_steps=episode, num_interact=2 * episode, max_feedback=40,
+                          queries_per_round=10, reward_epochs=10, reset_update=20,
+                          segment_len=min(50, episode // 2))
+    return dict(num_seed_steps=episode, pebble=pebble, sac=sac)
+
+
+def spec(name: str) -> MethodSpec:
+    return MethodSpec(name=name, build=Pebble, sections={"pebble": PebbleConfig},
+                      preset=pebble_preset)

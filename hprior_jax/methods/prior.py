@@ -1,0 +1,214 @@
+"""Hindsight PRIOR on the PEBBLE loop: PEBBLE plus a world model whose attention guides reward
+learning (appendix C.3, Table 4).
+
+Schedule on top of PEBBLE's (decided on the host, the same for every seed):
+  seed + unsup (first round)  observation + dynamics model trained on the replay buffer
+                              (`wm_pretrain_steps`), then PEBBLE's first feedback round
+  every multiple of j after   dynamics model only (`wm_update_steps`), on segments sampled from
+                              the whole replay buffer (TWM trains on its bank of transitions;
+                              "incoming data" in C.3 is in that bank)
+  every feedback round        α for every stored pair from the current world model, then the
+                              reward update with CE + λ·L_prior
+
+Decision: α is recomputed at each round, not after each world-model update. It is read only by
+the reward update, which happens only at rounds, so the values are identical and the rounds
+between updates cost nothing (a spec that says "recompute after each update" means the same).
+PRIOR-NRP (`prior_nrp`) is the same method with α min-max normalised and softmaxed
+(appendix eq. 9). λ is a leaf of the run state (`ext.lam`), so runs that differ only in λ
+share one compiled program and can be vmapped side by side.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import partial
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from hprior_jax.agents.sac import SACConfig
+from hprior_jax.envs import task_info
+from hprior_jax.loop.state import RunState
+from hprior_jax.methods.pebble import Extension, Pebble, PebbleConfig, PebbleState, pebble_preset
+from hprior_jax.methods.registry import MethodSpec
+from hprior_jax.networks.reward_ensemble import member_rewards
+from hprior_jax.prior import world_model as wm
+from hprior_jax.prior.attention import pair_credit
+from hprior_jax.prior.loss import PairCredit, prior_term, target_saturation, variant_alpha
+from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
+
+_WM_STREAM = 0x574D  # fold_in tag of the world model's random stream
+LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    lam: float = 5.0
+    """λ, the prior loss weight: appendix Table 4 gives 5 for DMC and 1000 for MetaWorld (the
+    presets pick the task's). 0 trains exactly PEBBLE's reward."""
+    wm_every: int = 2000
+    """j: env steps between dynamics-model updates after pre-training (appendix C.3)."""
+    wm_pretrain_steps: int = 1000
+    """Gradient steps on observation + dynamics model at the end of pre-training. The paper does
+    not give this number; ours, with `wm_update_steps`, keeps ~1 world-model step per 20 env steps."""
+    wm_update_steps: int = 100
+    """Dynamics-model gradient steps every `wm_every` env steps (not given by the paper)."""
+    attention_query: Literal["action", "state"] = "action"
+    """Which final-step token's attention row is read (see prior/attention.py for why action)."""
+    # world model sizes (TWM defaults; appendix Table 5 sets sequence = memory = segment length)
+    wm_batch: int = 100
+    wm_latent: int = 32
+    wm_obs_hidden: int = 512
+    wm_obs_depth: int = 2
+    wm_embed: int = 256
+    wm_layers: int = 10
+    wm_heads: int = 4
+    wm_head_dim: int = 64
+    wm_ff: int = 1024
+    wm_head_hidden: int = 512
+    wm_head_depth: int = 4
+    wm_dropout: float = 0.1
+    wm_dropout_rng: DropoutRng = "rbg"
+    """PRNG of the world model's dropout masks: rbg is faster on CPU (see WorldModelConfig)."""
+    wm_lr: float = 1e-4
+
+    def __post_init__(self):
+        if self.lam < 0:
+            raise ValueError(f"--prior.lam must be >= 0, got {self.lam}")
+        for name in ("wm_every", "wm_batch", "wm_latent", "wm_obs_hidden", "wm_embed",
+                     "wm_layers", "wm_heads", "wm_head_dim", "wm_ff", "wm_head_hidden"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"--prior.{name.replace('_', '-')} must be positive, "
+                                 f"got {getattr(self, name)}")
+        if self.wm_pretrain_steps < 1:
+            raise ValueError("--prior.wm-pretrain-steps must be >= 1: attention from an untrained "
+                             "world model is noise (use --algo rvar for no world model)")
+        if self.wm_update_steps < 0:
+            raise ValueError("--prior.wm-update-steps must be >= 0")
+        if not 0.0 <= self.wm_dropout < 1.0:
+            raise ValueError(f"--prior.wm-dropout must be in [0, 1), got {self.wm_dropout}")
+
+    def world_model(self, obs_size: int, act_size: int, segment_len: int) -> WorldModelConfig:
+        return WorldModelConfig(
+            obs_size=obs_size, act_size=act_size, latent_dim=self.wm_latent,
+            obs_hidden=(self.wm_obs_hidden,) * self.wm_obs_depth, embed_dim=self.wm_embed,
+            num_heads=self.wm_heads, head_dim=self.wm_head_dim, num_layers=self.wm_layers,
+            ff_dim=self.wm_ff, dropout=self.wm_dropout, dropout_rng=self.wm_dropout_rng,
+            head_hidden=(self.wm_head_hidden,) * self.wm_head_depth, segment_len=segment_len,
+            memory_len=segment_len, batch_size=self.wm_batch, obs_lr=self.wm_lr, dyn_lr=self.wm_lr)
+
+
+@struct.dataclass
+class PriorExtState:
+    wm: wm.WorldModelState
+    credit: PairCredit  # α of both segments of every stored pair, as of the last round
+    lam: jax.Array  # λ: a leaf, so a λ sweep vmaps instead of recompiling
+
+
+class WorldModelPrior(Extension):
+    """PEBBLE's reward update plus λ·L_prior with α from the world model's attention."""
+
+    def __init__(self, cfg, kit, variant: str):
+        self.cfg, self.kit, self.variant = cfg, kit, variant
+        self.prior_cfg = cfg.prior
+        self.segment_len = cfg.pebble.segment_len
+        self.wm_cfg = cfg.prior.world_model(kit.env.obs_size, kit.env.action_size,
+                                            self.segment_len)
+        self.first_round_step = cfg.num_seed_steps + cfg.pebble.num_unsup_steps
+
+    # -- schedule --------------------------------------------------------------------------
+    def event_steps(self) -> list[int]:
+        """Global steps before which the world model trains: the first is the pre-training."""
+        first, j = self.first_round_step, self.prior_cfg.wm_every
+        later = range((first // j + 1) * j, self.cfg.steps, j) if self.prior_cfg.wm_update_steps else []
+        return [first, *later]
+
+    # -- per-seed pure functions -----------------------------------------------------------
+    # World-model randomness is folded out of the keys PEBBLE uses, never split from them, so
+    # every PEBBLE draw is unchanged: with λ = 0 a PRIOR run trains exactly PEBBLE's agent.
+    def init(self, key):
+        return PriorExtState(wm=wm.init(jax.random.fold_in(key, _WM_STREAM), self.wm_cfg),
+                             credit=PairCredit.uniform(self.cfg.pebble.max_feedback,
+                                                       self.segment_len),
+                             lam=jnp.asarray(self.prior_cfg.lam, jnp.float32))
+
+    def train_world_model(self, rs: RunState, *, pretrain: bool):
+        """Pre-training: observation and dynamics model; later: dynamics only (appendix C.3)."""
+        p, ext = self.prior_cfg, rs.method.ext
+        state, metrics = wm.train(
+            ext.wm, jax.random.fold_in(rs.key, _WM_STREAM), rs.replay.obs, rs.replay.action,
+            rs.replay.size, cfg=self.wm_cfg, episode_len=self.kit.env.episode_length,
+            num_steps=p.wm_pretrain_steps if pretrain else p.wm_update_steps,
+            observation_model=pretrain, dynamics_model=True)
+        return rs.replace(method=rs.method.replace(ext=ext.replace(wm=state))), metrics
+
+    def reward_terms(self, ms: PebbleState):
+        """α for every stored pair from the current world model, then the prior term."""
+        credit = pair_credit(ms.ext.wm.params, ms.prefs, self.wm_cfg, credit=ms.ext.credit,
+                             query=self.prior_cfg.attention_query)
+        ms = ms.replace(ext=ms.ext.replace(credit=credit))
+        return (prior_term(ms.ext.lam, credit, self.variant),), ms
+
+    def round_metrics(self, ms: PebbleState, reward_cfg) -> dict:
+        """Attention entropy (normalised by log T: 1 = uniform) and the fraction of targets
+        α·R̂ outside the tanh reward's range [-1, 1], over the stored pairs."""
+        prefs, credit = ms.prefs, ms.ext.credit
+        real = jnp.arange(prefs.capacity) < prefs.count
+        n = jnp.maximum(prefs.count, 1).astype(jnp.float32) * 2
+        t = credit.alpha1.shape[-1]
+        alpha = variant_alpha(jnp.concatenate([credit.alpha1, credit.alpha2]), self.variant)
+        ent = -jnp.sum(alpha * jnp.log(jnp.maximum(alpha, 1e-12)), -1) / jnp.log(t)
+        mask2 = jnp.concatenate([real, real])
+        obs = jnp.concatenate([prefs.obs1, prefs.obs2])
+        act = jnp.concatenate([prefs.act1, prefs.act2])
+        r = member_rewards(ms.reward, obs, act, reward_cfg)  # [K, 2C, T]
+        out = jax.vmap(lambda r_k: jax.vmap(target_saturation)(r_k, alpha))(r)  # [K, 2C]
+        return {"prior/attention_entropy": jnp.sum(ent * mask2) / n,
+                "prior/target_out_of_range": jnp.sum(out.mean(0) * mask2) / n}
+
+    # -- host side -------------------------------------------------------------------------
+    def run_event(self, rs: RunState, step: int):
+        pretrain = step == self.first_round_step
+        name = "world_model/pretrain" if pretrain else "world_model/update"
+        fn = jax.jit(jax.vmap(partial(self.train_world_model, pretrain=pretrain)),
+                     donate_argnums=0)
+        compiled = self.kit.compile(name, fn, rs)
+        t0 = time.perf_counter()
+        rs, metrics = jax.block_until_ready(compiled(rs))
+        metrics = dict(metrics)
+        metrics["perf/world_model_s"] = np.full(len(self.cfg.seeds), time.perf_counter() - t0)
+        return rs, metrics
+
+
+# the world model at the paper's size (TWM: 10 layers x 256) costs seconds per update on a CPU;
+# the CPU presets shrink it and keep the schedule (j = 2000) and the loss
+REDUCED_WORLD_MODEL = dict(wm_embed=64, wm_layers=2, wm_heads=2, wm_head_dim=32, wm_ff=256,
+                           wm_obs_hidden=256, wm_head_hidden=256, wm_head_depth=2, wm_batch=32,
+                           wm_pretrain_steps=300, wm_update_steps=30)
+SMOKE_WORLD_MODEL = dict(wm_embed=32, wm_layers=1, wm_heads=2, wm_head_dim=16, wm_ff=64,
+                         wm_obs_hidden=64, wm_obs_depth=1, wm_head_hidden=64, wm_head_depth=1,
+                         wm_batch=8, wm_pretrain_steps=10, wm_update_steps=2)
+
+
+def prior_preset(task: str, preset: str, sac: SACConfig) -> dict:
+    """PEBBLE's preset plus λ from appendix Table 4 (5 DMC, 1000 MetaWorld) and the world
+    model's size per preset."""
+    sizes = {"paper": {}, "reduced": REDUCED_WORLD_MODEL, "smoke": SMOKE_WORLD_MODEL}[preset]
+    return {**pebble_preset(task, preset, sac),
+            "prior": PriorConfig(lam=LAMBDA[task_info(task).domain], **sizes)}
+
+
+_VARIANT = {"prior": "raw", "prior_nrp": "nrp"}
+
+
+def build(cfg, kit, variant: str) -> Pebble:
+    return Pebble(cfg, kit, extension=WorldModelPrior(cfg, kit, variant))
+
+
+def spec(name: str) -> MethodSpec:
+    return MethodSpec(name=name, build=partial(build, variant=_VARIANT[name]),
+                      sections={"pebble": PebbleConfig, "prior": PriorConfig},
+                      preset=prior_preset, has_world_model=True)

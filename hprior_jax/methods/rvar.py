@@ -1,0 +1,55 @@
+"""RVAR (appendix G.1): PEBBLE plus the prior loss with the segment's return spread uniformly
+over its steps (target R̂/|σ| for every step). PRIOR's ablation without a world model: what
+PRIOR adds over it is the attention's shape, not the redistribution itself."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from hprior_jax.agents.sac import SACConfig
+from hprior_jax.envs import task_info
+from hprior_jax.methods.pebble import Extension, Pebble, PebbleConfig, PebbleState, pebble_preset
+from hprior_jax.methods.prior import LAMBDA
+from hprior_jax.methods.registry import MethodSpec
+from hprior_jax.prior.loss import PairCredit, prior_term
+
+
+@dataclass(frozen=True)
+class RvarConfig:
+    lam: float = 5.0
+    """λ, the weight of the uniform prior (the presets use PRIOR's: 5 DMC, 1000 MetaWorld)."""
+
+    def __post_init__(self):
+        if self.lam < 0:
+            raise ValueError(f"--rvar.lam must be >= 0, got {self.lam}")
+
+
+@struct.dataclass
+class RvarState:
+    lam: jax.Array  # a leaf: λ sweeps vmap
+
+
+class UniformPrior(Extension):
+    def __init__(self, cfg):
+        self.lam = cfg.rvar.lam
+        self.credit = partial(PairCredit.uniform, cfg.pebble.max_feedback, cfg.pebble.segment_len)
+
+    def init(self, key):
+        return RvarState(lam=jnp.asarray(self.lam, jnp.float32))
+
+    def reward_terms(self, ms: PebbleState):
+        return (prior_term(ms.ext.lam, self.credit(), "uniform"),), ms
+
+
+def rvar_preset(task: str, preset: str, sac: SACConfig) -> dict:
+    return {**pebble_preset(task, preset, sac),
+            "rvar": RvarConfig(lam=LAMBDA[task_info(task).domain])}
+
+
+def spec(name: str) -> MethodSpec:
+    return MethodSpec(name=name, build=lambda cfg, kit: Pebble(cfg, kit, UniformPrior(cfg)),
+                      sections={"pebble": PebbleConfig, "rvar": RvarConfig}, preset=rvar_preset)
