@@ -27,6 +27,7 @@ from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 from benchmarks._timing import write_rows
+from hprior_jax.methods import registry
 
 RESULTS = Path(__file__).resolve().parent / "results" / "end_to_end.csv"
 PARTS = ("chunk_s", "event_s", "world_model_s", "eval_s", "checkpoint_s", "compile_s")
@@ -82,7 +83,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--task", default="cheetah_run")
     p.add_argument("--algos", nargs="+", default=["pebble", "prior"],
-                   choices=["sac", "pebble", "prior"])
+                   choices=registry.names())
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
     p.add_argument("--preset", default="smoke", choices=["smoke", "reduced", "paper"])
     p.add_argument("--steps", type=int, default=None, help="override the preset's steps")

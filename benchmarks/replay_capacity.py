@@ -20,6 +20,7 @@ from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 from benchmarks._timing import machine, write_rows
+from hprior_jax.methods import registry
 
 RESULTS = Path(__file__).resolve().parent / "results" / "replay_capacity.csv"
 SEED_STEPS, UNSUP_STEPS = 2000, 3000
@@ -96,7 +97,7 @@ def measure(task: str, algo: str, capacity: int, length: int, repeats: int) -> l
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--task", default="cheetah_run")
-    p.add_argument("--algos", nargs="+", default=["sac", "pebble"], choices=["sac", "pebble"])
+    p.add_argument("--algos", nargs="+", default=["sac", "pebble"], choices=registry.names())
     p.add_argument("--capacities", nargs="+", type=int, default=[10_000, 100_000, 1_000_000])
     p.add_argument("--length", type=int, default=500, help="env steps per timed chunk")
     p.add_argument("--repeats", type=int, default=3)

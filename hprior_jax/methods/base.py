@@ -57,14 +57,14 @@ def random_step(kit: Kit) -> StepFn:
 
 def sac_step(kit: Kit, reward_fn=None) -> StepFn:
     """BPref order: act with the current policy, update, then (the engine) steps the env.
-    `reward_fn(rs, batch) -> (reward, rs, metrics)` replaces the buffer's reward (PEBBLE's
-    pre-training)."""
+    `reward_fn(rs, batch, t) -> (reward, rs, metrics)` replaces the buffer's reward in the
+    update (PEBBLE's state-entropy pre-training; a bonus decayed with the global step `t`)."""
     def step(rs: RunState, obs, t, keys):
         action = kit.sac.act(rs.sac.actor, obs, keys[0])
         batch = replay.sample(rs.replay, keys[1], kit.sac.cfg.batch_size)
         metrics = {}
         if reward_fn is not None:
-            reward, rs, metrics = reward_fn(rs, batch)
+            reward, rs, metrics = reward_fn(rs, batch, t)
             batch = batch._replace(reward=reward)
         sac_state, sac_metrics = kit.sac.update(rs.sac, batch, keys[2], t)
         return action, rs.replace(sac=sac_state), {**metrics, **sac_metrics}

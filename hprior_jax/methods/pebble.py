@@ -108,9 +108,10 @@ class PebbleState:
 
 
 class Extension:
-    """What a method built on PEBBLE adds to it (PRIOR, RVAR): its own state, its own
-    host-side events, and reward terms beside the preference cross-entropy. The default adds
-    nothing: PEBBLE itself."""
+    """What a method built on PEBBLE adds to it (PRIOR, RVAR): its own state (`ms.ext`), its
+    own host-side events, reward terms beside the preference cross-entropy (with the run
+    state at hand: replay buffer, SAC, keys), and the reward the agent trains on after
+    pre-training. The default adds nothing: PEBBLE itself."""
 
     def init(self, key: jax.Array):
         return None
@@ -121,10 +122,17 @@ class Extension:
     def run_event(self, rs: RunState, step: int) -> tuple[RunState, dict]:
         raise NotImplementedError
 
-    def reward_terms(self, ms: PebbleState) -> tuple[tuple[RewardTerm, ...], PebbleState]:
+    def reward_terms(self, rs: RunState, ms: PebbleState
+                     ) -> tuple[tuple[RewardTerm, ...], PebbleState]:
         """The terms of this round's reward update (called inside the compiled round, before
-        it); may update `ms.ext` (e.g. PRIOR's credit of the stored pairs)."""
+        it; `ms` holds this round's labels, `rs` the rest of the run); may update `ms.ext`
+        (e.g. PRIOR's credit of the stored pairs)."""
         return (), ms
+
+    def agent_reward(self, rs: RunState, batch, t: jax.Array):
+        """The reward of a sampled batch in SAC's update after pre-training at global step
+        `t`: (reward [B], rs, metrics). PEBBLE: the relabelled r̂ stored in the buffer."""
+        return batch.reward, rs, {}
 
     def round_metrics(self, ms: PebbleState, reward_cfg: RewardConfig) -> dict:
         """Scalar diagnostics after the round's reward update (inside the compiled round)."""
@@ -165,7 +173,8 @@ class Pebble(Method):
                 Phase(UNSUP, self.cfg.num_seed_steps,
                       sac_step(kit, reward_fn=self._intrinsic_reward),
                       SAC_METRICS + ("train/intrinsic_reward",)),
-                Phase(SAC_PHASE, self.first_round_step, sac_step(kit), SAC_METRICS))
+                Phase(SAC_PHASE, self.first_round_step,
+                      sac_step(kit, reward_fn=self.ext.agent_reward), SAC_METRICS))
 
     def rounds(self) -> list[tuple[int, int]]:
         """(step, queries) of every feedback round: the last is clipped to the budget."""
@@ -195,7 +204,7 @@ class Pebble(Method):
         # BPref stores r_hat(s, a) of the current ensemble with each new transition
         return mean_reward(rs.method.reward, obs[None], action[None], self.reward_cfg)[0]
 
-    def _intrinsic_reward(self, rs: RunState, batch):
+    def _intrinsic_reward(self, rs: RunState, batch, t):
         buf = rs.replay
         r, stats = state_entropy_reward(batch.obs, buf.obs, buf.size, rs.method.entropy_stats,
                                         k=self.pcfg.knn_k,
@@ -234,7 +243,7 @@ class Pebble(Method):
         keep = out.valid & pairs.mask
         prefs = preferences.add(ms.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
-        ms, rmetrics = self._train_reward(ms.replace(prefs=prefs), k_reward)
+        ms, rmetrics = self._train_reward(rs, ms.replace(prefs=prefs), k_reward)
         reward = relabel_rewards(ms.reward, buf.obs, buf.action, buf.reward, buf.size,
                                  reward_cfg=self.reward_cfg)
         buf = buf.replace(reward=reward)
@@ -253,11 +262,11 @@ class Pebble(Method):
         }
         return rs.replace(sac=sac, replay=buf, method=ms, key=key), metrics
 
-    def _train_reward(self, ms: PebbleState, key: jax.Array):
+    def _train_reward(self, rs: RunState, ms: PebbleState, key: jax.Array):
         """The reward-ensemble update of a round on every stored pair (`ms.prefs`), with the
         extension's terms. -> (ms with the new reward params and optimiser state, scalar
         metrics: `reward/` and each term's unweighted loss under its name)."""
-        terms, ms = self.ext.reward_terms(ms)
+        terms, ms = self.ext.reward_terms(rs, ms)
         params, opt, m = train_reward(ms.reward, ms.reward_opt, ms.prefs, key,
                                       tx=self.reward_tx, reward_cfg=self.reward_cfg,
                                       cfg=self.pref_cfg, terms=terms)

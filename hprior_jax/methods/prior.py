@@ -145,7 +145,7 @@ class WorldModelPrior(Extension):
             observation_model=pretrain, dynamics_model=True)
         return rs.replace(method=rs.method.replace(ext=ext.replace(wm=state))), metrics
 
-    def reward_terms(self, ms: PebbleState):
+    def reward_terms(self, rs, ms: PebbleState):
         """α for every stored pair from the current world model, then the prior term."""
         credit = pair_credit(ms.ext.wm.params, ms.prefs, self.wm_cfg, credit=ms.ext.credit,
                              query=self.prior_cfg.attention_query)

@@ -41,7 +41,7 @@ class UniformPrior(Extension):
     def init(self, key):
         return RvarState(lam=jnp.asarray(self.lam, jnp.float32))
 
-    def reward_terms(self, ms: PebbleState):
+    def reward_terms(self, rs, ms: PebbleState):
         return (prior_term(ms.ext.lam, self.credit(), "uniform"),), ms
 
 
