@@ -99,7 +99,9 @@ def test_reward_success_obs_parity_with_metaworld(name):
 
 def test_kinematics_speed_guard():
     """jit(mjx.kinematics) on metaworld's *unchanged* drawer scene (14-deep arm) must take
-    < 5 ms; without XLA_FLAGS=--xla_cpu_use_fusion_emitters=false it takes ~0.5 s."""
+    < 25 ms; without XLA_FLAGS=--xla_cpu_use_fusion_emitters=false it takes ~0.5 s. (Steady
+    state with the flag: 3.8-5.2 ms on one CI machine, 5.0-7.0 ms on another on 2026-12-01;
+    the bound sits between that spread and the regression it guards against.)"""
     from tasks.metaworld.sawyer import load_full_model
     from tasks.physics import put_model
 
@@ -115,7 +117,7 @@ def test_kinematics_speed_guard():
         t0 = time.perf_counter()
         jax.block_until_ready(kin(model, data))
         times.append(time.perf_counter() - t0)
-    assert statistics.median(times) < 5e-3, times
+    assert statistics.median(times) < 25e-3, times
 
 
 @pytest.mark.slow
