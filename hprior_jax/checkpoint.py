@@ -53,9 +53,10 @@ class Checkpointer:
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
         rename = rename or (lambda name: name)
-        stored = {name: rename(name) for name in _flat(like)}
+        flat_like = _flat(like)
+        stored = {name: rename(name) for name in flat_like}
         abstract = {stored[name]: ocp.utils.to_shape_dtype_struct(x)
-                    for name, x in _flat(like).items() if stored[name] is not None}
+                    for name, x in flat_like.items() if stored[name] is not None}
         flat = self._manager.restore(step, args=ocp.args.StandardRestore(abstract))
         leaves = [flat.get(stored.get(_name(path)), leaf) for path, leaf in _with_path(like)]
         return step, jax.tree.unflatten(jax.tree.structure(like), leaves)

@@ -74,5 +74,8 @@ def from_format_1(d: dict) -> dict:
     if algo == "prior":
         algo = d["algo"] = {"prior": "prior", "nrp": "prior_nrp", "rvar": "rvar"}[
             prior.pop("variant", "prior")]
-        d["rvar" if algo == "rvar" else "prior"] = {"lam": prior["lam"]} if algo == "rvar" else prior
+        if algo == "rvar":
+            d["rvar"] = {"lam": prior["lam"]}
+        else:
+            d["prior"] = prior
     return d
