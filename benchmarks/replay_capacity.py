@@ -15,11 +15,10 @@ benchmarks/results/replay_capacity.csv.
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import machine, write_rows
+from benchmarks._timing import best_seconds, machine, write_rows
 from hprior_jax.methods import registry
 
 RESULTS = Path(__file__).resolve().parent / "results" / "replay_capacity.csv"
@@ -61,13 +60,8 @@ def seconds(fn, rs_source, repeats: int) -> float:
     import jax
     import jax.numpy as jnp
 
-    best = float("inf")
-    for _ in range(repeats):
-        rs = jax.block_until_ready(jax.tree.map(jnp.copy, rs_source))
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(rs))
-        best = min(best, time.perf_counter() - t0)
-    return best
+    copy = lambda: jax.block_until_ready(jax.tree.map(jnp.copy, rs_source))
+    return best_seconds(fn, repeats, jax.block_until_ready, setup=copy)
 
 
 def measure(task: str, algo: str, capacity: int, length: int, repeats: int) -> list[dict]:

@@ -6,6 +6,7 @@
     hprior attention --run runs/cheetah_run_prior_20261122-101500 --pair 3
     hprior grid --tasks cheetah_run --algos sac pebble prior --budget reduced --out results
     hprior report results
+    hprior reward-lab --task cheetah_run --seeds 20 --budgets 25 100 400
     hprior tasks
     hprior methods
 """
@@ -25,6 +26,7 @@ commands:
   attention  world-model attention maps of a trained run of a method with a world model
   grid       every (task, algorithm) with its seeds; skips finished runs, resumes the rest
   report     Tables 6-7, paired t-tests, learning curves of a grid's results directory
+  reward-lab which method learns the better reward from the same labels, on fixed data
   tasks      list the registered tasks
   methods    list the registered methods (--algo)
 """
@@ -170,6 +172,59 @@ def _report(argv: list[str]) -> int:
     return 0
 
 
+def _reward_lab(argv: list[str]) -> int:
+    from hprior_jax.lab import dataset as datasets
+    from hprior_jax.lab.sweep import rules
+
+    parser = argparse.ArgumentParser(
+        prog="hprior reward-lab",
+        description="Reward learning decoupled from RL: every rule trains reward models from "
+                    "the same kind of labels on a fixed dataset of the task (built once by a "
+                    "SAC run on the true reward, cached in $HPRIOR_LAB_CACHE), seeds and rules "
+                    "vmapped in one program; reports held-out accuracy and correlation with the "
+                    "true reward, with CIs and paired tests against "
+                    f"{registry.LAB_REFERENCE}.")
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--preset", default="reduced", choices=("paper", "reduced", "smoke"),
+                        help="the RL preset whose reward, schedule and world-model settings "
+                             "the lab uses (and the dataset's SAC)")
+    parser.add_argument("--dataset-steps", type=int, default=datasets.DEFAULT_STEPS)
+    parser.add_argument("--dataset-seed", type=int, default=0)
+    parser.add_argument("--dataset-only", action="store_true", help="build the dataset, stop")
+    parser.add_argument("--rules", nargs="+", default=None,
+                        help=f"default: all ({' '.join(rules())})")
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--budgets", nargs="+", type=int, default=[25, 100, 400])
+    parser.add_argument("--queries-per-round", type=int, default=None,
+                        help="default: the preset's (10 DMC, 20 MetaWorld at reduced)")
+    parser.add_argument("--feed", default=None, choices=("uniform", "disagreement", "entropy"),
+                        help="query selection after the first (uniform) round")
+    parser.add_argument("--teacher", default="oracle", help="a B-Pref teacher preset")
+    parser.add_argument("--one-shot", action="store_true",
+                        help="train once on all of a budget's labels (uniform queries)")
+    parser.add_argument("--lam", type=float, default=None, help="λ (default: the preset's)")
+    parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
+    args = parser.parse_args(argv)
+    from hprior_jax.lab.sweep import lab_config, run_lab
+    from hprior_jax.setup_jax import enable_compilation_cache
+
+    enable_compilation_cache()
+    data, path = datasets.load_or_build(args.task, args.dataset_seed, args.dataset_steps,
+                                        args.preset)
+    print(f"dataset {path}: {data.info}", flush=True)
+    if args.dataset_only:
+        return 0
+    if args.seeds < 10:
+        print(f"warning: {args.seeds} seeds; the lab's comparisons want 10 or more",
+              file=sys.stderr)
+    cfg = lab_config(data, args.preset, args.rules, args.seeds, args.budgets,
+                     args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam)
+    out = args.out or f"runs/reward_lab/{args.task}"
+    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True))
+    print(f"{info['wall_seconds']} s, peak RSS {info['peak_rss_gib']} GiB; report in {out}")
+    return 0
+
+
 def _tasks(argv: list[str]) -> int:
     from hprior_jax.envs import task_names
 
@@ -189,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
     commands = {"train": _train, "attention": _attention, "grid": _grid, "report": _report,
-                "tasks": _tasks, "methods": _methods}
+                "reward-lab": _reward_lab, "tasks": _tasks, "methods": _methods}
     if command not in commands:
         print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         return 2

@@ -74,35 +74,57 @@ def _drive(engine, rs, steps):
     return rs
 
 
-def test_lambda_sweep_runs_vmapped_beside_the_seeds_in_one_program(tmp_path):
-    """Three λ x two seeds = six cells on the leading axis: every program (chunks, world model,
-    feedback rounds) compiles once, and each cell equals a run of that λ alone."""
-    lams, seeds = (0.0, 5.0, 50.0), (7, 8)
-    cfg = _cfg(tmp_path, "prior", steps=100, seeds=seeds)
+LAMS, SEEDS = (0.0, 5.0, 50.0), (7, 8)
+
+
+@pytest.fixture(scope="module")
+def lambda_sweep(tmp_path_factory):
+    """Three λ x two seeds = six cells on the leading axis of one run."""
+    cfg = _cfg(tmp_path_factory.mktemp("sweep"), "prior", steps=100, seeds=SEEDS)
     engine = Engine(cfg)
-    rs = engine.init_seeds([s for _ in lams for s in seeds])
-    lam = jnp.repeat(jnp.asarray(lams, jnp.float32), len(seeds))
+    rs = engine.init_seeds([s for _ in LAMS for s in SEEDS])
+    lam = jnp.repeat(jnp.asarray(LAMS, jnp.float32), len(SEEDS))
     rs = rs.replace(method=rs.method.replace(ext=rs.method.ext.replace(lam=lam)))
     rs = _drive(engine, rs, cfg.steps)
-    engine.run_eval(rs, list(seeds) * len(lams), cfg.steps)
-    # the programs of a whole run, each compiled once (ahead of time, by the engine): more
-    # would mean a shape or a static value changes between chunks or cells
+    engine.run_eval(rs, list(SEEDS) * len(LAMS), cfg.steps)
+    return cfg, engine, rs
+
+
+def _flat(tree, i):
+    return np.concatenate([np.ravel(np.asarray(x)[i]) for x in jax.tree.leaves(tree)])
+
+
+def _gap(a, b):
+    return float(np.abs(a - b).mean())
+
+
+def test_lambda_sweep_runs_vmapped_beside_the_seeds_in_one_program(lambda_sweep):
+    """Every program of the run (chunks, world model, feedback rounds) compiles once for the
+    six cells, and λ reaches each cell's reward model."""
+    _, engine, rs = lambda_sweep
+    # ahead-of-time compiles, one per name: more would mean a shape or a static value
+    # changes between chunks or cells
     assert sorted(engine.compile_seconds) == [
         "chunk/20", "eval", "feedback_round", "feedback_round/first", "world_model/pretrain",
         "world_model/update"]
-    # the cell (λ = 50, seed 7) is a run of λ = 50 alone, up to the rounding of a vmapped
-    # program (which grows over 100 steps of training): far closer than the λ = 5 cell
-    # (mean absolute difference of the reward weights)
+    cell = lambda i: _flat(rs.method.reward, i)  # cells: (λ 0: 0, 1), (λ 5: 2, 3), (λ 50: 4, 5)
+    # lanes of one program with the same inputs compute the same bits: a gap means λ arrived
+    assert _gap(cell(0), cell(2)) > 1e-5 and _gap(cell(2), cell(4)) > 1e-5
+
+
+@pytest.mark.slow
+def test_a_lambda_sweep_cell_equals_a_run_of_that_lambda_alone(lambda_sweep):
+    """The cell (λ = 50, seed 7) is a run of λ = 50 alone, up to the rounding of a vmapped
+    program (which grows over 100 steps of training): far closer than the λ = 5 cell."""
+    cfg, _, rs = lambda_sweep
     alone = Engine(dataclasses.replace(cfg, seeds=(7,), prior=dataclasses.replace(cfg.prior,
                                                                                    lam=50.0)))
     one = _drive(alone, alone.init_seeds([7]), cfg.steps)
-    flat = lambda tree, i: np.concatenate([np.ravel(np.asarray(x)[i]) for x in jax.tree.leaves(tree)])
-    cell = lambda i: flat(rs.method.reward, i)
-    gap = lambda a, b: float(np.abs(a - b).mean())
-    rounding = gap(flat(one.method.reward, 0), cell(4))
+    cell = lambda i: _flat(rs.method.reward, i)
+    rounding = _gap(_flat(one.method.reward, 0), cell(4))
     assert rounding < 1e-4, rounding
-    assert gap(cell(2), cell(4)) > 10 * rounding  # λ = 5 vs 50: λ reaches the reward model
-    assert gap(cell(0), cell(2)) > 10 * rounding  # λ = 0 vs 5
+    assert _gap(cell(2), cell(4)) > 10 * rounding  # λ = 5 vs 50: λ reaches the reward model
+    assert _gap(cell(0), cell(2)) > 10 * rounding  # λ = 0 vs 5
 
 
 @pytest.mark.parametrize("fixture, algo", [("format1_prior", "prior")])

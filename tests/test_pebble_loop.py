@@ -91,17 +91,21 @@ def test_feedback_and_reward_logs(toy_runs):
     assert int(np.asarray(rs.method.prefs.count)[0]) == 40
 
 
-def test_cli_pebble_with_short_flags(tmp_path):
+def test_cli_pebble_with_short_flags(tmp_path, monkeypatch):
+    """The short spellings and --teacher reach the run's config (the training itself is
+    the other tests' job: host.run is replaced by a recorder)."""
+    runs = []
+    monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))
     out = tmp_path / "cli"
     rc = cli.main(["train", "--algo", "pebble", "--task", "toy_point", "--preset", "smoke",
                    "--feedback", "20", "--queries-per-round", "10", "--teacher", "mistake",
                    "--sac.hidden-dim", "16", "--sac.batch-size", "8", "--num-eval-episodes", "2",
                    "--steps", "100", "--out", str(out), "--no-progress"])
-    assert rc == 0
+    assert rc == 0 and len(runs) == 1
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["pebble"]["max_feedback"] == 20 and cfg["pebble"]["teacher"]["eps_mistake"] == 0.1
-    rounds = [r for r in _records(out) if "feedback/queries" in r]
-    assert [r["step"] for r in rounds] == [40, 80]
+    assert cfg["pebble"]["queries_per_round"] == 10 and cfg["sac"]["hidden_dim"] == 16
+    assert Engine(runs[0]).method.rounds() == [(40, 10), (80, 10)]
 
 
 def test_pebble_config_errors(tmp_path):

@@ -77,17 +77,9 @@ def add(store: PreferenceStore, batch: PreferenceBatch, valid: jax.Array) -> Pre
     invalid ones are dropped. Static shapes: batch size B <= capacity.
     """
     cap = store.capacity
-    b = batch.labels.shape[0]
-    if b > cap:
-        raise ValueError(f"batch of {b} pairs exceeds the store capacity {cap}; raise capacity")
-    valid = valid.astype(bool)
-    rank = jnp.cumsum(valid.astype(jnp.int32)) - 1  # position among the valid pairs
-    n_new = valid.sum().astype(jnp.int32)
-    slot = jnp.where(valid, (store.ptr + rank) % cap, cap)  # cap = out of bounds -> dropped
-
-    def put(dst, src):
-        return dst.at[slot].set(src.astype(dst.dtype), mode="drop")
-
+    slot = slots(store, valid)
+    n_new = valid.astype(bool).sum().astype(jnp.int32)
+    put = lambda dst, src: put_rows(dst, src, slot)
     return store.replace(
         obs1=put(store.obs1, batch.obs1), act1=put(store.act1, batch.act1),
         obs2=put(store.obs2, batch.obs2), act2=put(store.act2, batch.act2),
@@ -95,6 +87,22 @@ def add(store: PreferenceStore, batch: PreferenceBatch, valid: jax.Array) -> Pre
         ptr=(store.ptr + n_new) % cap,
         count=jnp.minimum(store.count + n_new, cap),
     )
+
+
+def slots(store: PreferenceStore, valid: jax.Array) -> jax.Array:
+    """[B] int32: the rows `add` writes the valid pairs to (capacity = dropped), so that data
+    kept beside the store (e.g. a credit per pair) can be written to the same rows."""
+    cap = store.capacity
+    b = valid.shape[0]
+    if b > cap:
+        raise ValueError(f"batch of {b} pairs exceeds the store capacity {cap}; raise capacity")
+    valid = valid.astype(bool)
+    rank = jnp.cumsum(valid.astype(jnp.int32)) - 1  # position among the valid pairs
+    return jnp.where(valid, (store.ptr + rank) % cap, cap)  # cap = out of bounds -> dropped
+
+
+def put_rows(dst: jax.Array, src: jax.Array, slot: jax.Array) -> jax.Array:
+    return dst.at[slot].set(src.astype(dst.dtype), mode="drop")
 
 
 def valid_mask(store: PreferenceStore) -> jax.Array:

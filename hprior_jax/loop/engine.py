@@ -42,8 +42,10 @@ class Engine:
     def phase_at(self, step: int) -> str:
         return self.phases[self._phase_index(step)].name
 
-    def _phase_index(self, step: int) -> int:
-        return sum(step >= p.start for p in self.phases[1:])
+    def _phase_index(self, step):
+        """The phase of global step `step`: a Python int on the host, a traced int32 in the
+        chunk (where it indexes the lax.switch)."""
+        return sum((step >= p.start) * 1 for p in self.phases[1:])
 
     def phase_metrics(self, phase: str) -> tuple[str, ...]:
         """The `train/` metrics meaningful in `phase` (others are placeholders)."""
@@ -74,7 +76,7 @@ class Engine:
         """`length` env steps from global step `step0`. A chunk never crosses a phase change,
         so the phase is an unbatched `lax.switch` index: a real branch under vmap, and one
         compiled program for every phase."""
-        phase = sum((step0 >= p.start).astype(jnp.int32) for p in self.phases[1:])
+        phase = jnp.asarray(self._phase_index(step0), jnp.int32)
         metric_keys = sorted({k for p in self.phases for k in p.metrics})
 
         def branch(fn):

@@ -355,4 +355,4 @@ def pebble_preset(task: str, preset: str, sac: SACConfig) -> dict:
 
 def spec(name: str) -> MethodSpec:
     return MethodSpec(name=name, build=Pebble, sections={"pebble": PebbleConfig},
-                      preset=pebble_preset)
+                      preset=pebble_preset, lab_credit="none")

@@ -24,6 +24,7 @@ REFERENCE = "sac"  # the normaliser of Tables 6-7
 PROPOSED = "prior"  # the method the paired t-tests compare every other one with
 DEFAULT = "sac"  # `hprior train` without --algo
 GRID_DEFAULT = ("sac", "pebble", "prior")  # `hprior grid` without --algos
+LAB_REFERENCE = "pebble"  # `hprior reward-lab` compares every rule with it
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,10 @@ class MethodSpec:
     preset: Callable = lambda task, preset, sac: {}
     """(task, preset name, the preset's SACConfig) -> RunConfig field overrides."""
     has_world_model: bool = False  # attention maps need one
+    lab_credit: str | None = None
+    """How the method's reward update enters the reward-learning lab (`hprior reward-lab`): the
+    credit α of its prior term (hprior_jax.lab.learn.CREDITS; "none" = cross-entropy only).
+    None: the method learns no reward from preferences."""
 
 
 def names() -> list[str]:

@@ -52,4 +52,5 @@ def rvar_preset(task: str, preset: str, sac: SACConfig) -> dict:
 
 def spec(name: str) -> MethodSpec:
     return MethodSpec(name=name, build=lambda cfg, kit: Pebble(cfg, kit, UniformPrior(cfg)),
-                      sections={"pebble": PebbleConfig, "rvar": RvarConfig}, preset=rvar_preset)
+                      sections={"pebble": PebbleConfig, "rvar": RvarConfig}, preset=rvar_preset,
+                      lab_credit="uniform")

@@ -36,7 +36,9 @@ class Bundle:
         self.rollout = parity.make_rollout(self.task)
 
 
-@pytest.fixture(scope="module", params=TASKS)
+# quadruped's rollout compiles for ~2 min on 2 cores: `-m slow` (its reset height stays fast)
+@pytest.fixture(scope="module", params=[
+    t if t != "quadruped_walk" else pytest.param(t, marks=pytest.mark.slow) for t in TASKS])
 def bundle(request):
     return Bundle(request.param)
 

@@ -1,0 +1,343 @@
+"""Report of a reward-learning lab: how well reward models learned by several labelling rules
+match the true reward, against the reference rule PEBBLE, at several label budgets.
+
+The lab's raw results are rows, one per (task, rule, budget, seed), holding the reward-quality
+metrics of `METRICS` measured on held-out data (other columns are carried along, not used).
+`write_report` turns them into summary.csv, results.csv, one plot per (task, metric) and
+report.md; `python -m hprior_jax.experiments.lab_report RESULTS_CSV OUT_DIR` rebuilds all of it
+from a saved results.csv.
+
+Statistical choices:
+- a mean over seeds comes with a Student t-interval (n - 1 degrees of freedom); NaN values are
+  dropped, and with fewer than 2 values the interval is NaN.
+- each rule is compared with pebble at the same task and budget by a two-sided paired t-test
+  on the seeds both ran (seed s against seed s), with a t-interval on the mean paired
+  difference (rule - pebble).
+- a difference the test does not detect is reported with MDE80, the smallest true mean
+  difference the test detects with 80% power at alpha 0.05 for this n, taking the observed sd
+  of the paired differences as the true one. Power is exact under normal differences (the
+  t statistic follows a noncentral t), not the normal approximation, which is optimistic at
+  few seeds.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy import optimize, stats  # noqa: E402
+
+from hprior_jax.experiments.scores import paired_t_test  # noqa: E402
+from hprior_jax.lab.metrics import METRICS  # noqa: E402
+from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE  # noqa: E402
+
+METRIC_LABEL = {
+    "heldout_accuracy": "held-out preference accuracy",
+    "pearson": "Pearson r with the true reward",
+    "spearman": "Spearman rank correlation with the true reward",
+    "kendall_tau": "Kendall tau with the true reward",
+}
+LEVEL = 0.95
+ALPHA = 0.05
+TARGET_POWER = 0.80
+DEFAULT_TITLE = "Reward-learning lab"
+NAN = float("nan")
+
+
+def mean_ci(values, level: float = LEVEL) -> tuple[float, float, float, int]:
+    """(mean, lo, hi, n) of the non-NaN `values` with a Student t-interval at `level`."""
+    x = np.asarray(values, dtype=float)
+    x = x[~np.isnan(x)]
+    n = int(x.size)
+    if n == 0:
+        return NAN, NAN, NAN, 0
+    mean = float(x.mean())
+    if n < 2:
+        return mean, NAN, NAN, n
+    # Written out rather than stats.t.interval, which gives NaN when all values are equal.
+    half_width = stats.t.ppf((1 + level) / 2, n - 1) * x.std(ddof=1) / math.sqrt(n)
+    return mean, float(mean - half_width), float(mean + half_width), n
+
+
+def paired_power(effect: float, sd: float, n: int, alpha: float = ALPHA) -> float:
+    """Probability that the two-sided paired t-test at `alpha` rejects on n pairs whose
+    differences are normal with true mean `effect` and standard deviation `sd`.
+    NaN when n < 2 or sd is not positive."""
+    if n < 2 or not sd > 0:
+        return NAN
+    df = n - 1
+    critical = stats.t.ppf(1 - alpha / 2, df)
+    noncentrality = effect * math.sqrt(n) / sd
+    return float(stats.nct.sf(critical, df, noncentrality)
+                 + stats.nct.cdf(-critical, df, noncentrality))
+
+
+def minimum_detectable_effect(sd: float, n: int, power: float = TARGET_POWER,
+                              alpha: float = ALPHA) -> float:
+    """Smallest true mean difference (> 0) that the two-sided paired t-test at `alpha` detects
+    with probability `power` on n pairs of sd `sd`. NaN when n < 2 or sd is not positive."""
+    if n < 2 or not sd > 0:
+        return NAN
+
+    def shortfall(effect_in_sds: float) -> float:
+        return paired_power(effect_in_sds, 1.0, n, alpha) - power
+
+    upper = 1.0
+    while shortfall(upper) < 0:  # power grows with the effect: widen until it brackets
+        upper *= 2
+        if upper > 1e3:  # at 2-3 seeds the noncentral t gives NaN before 80% power
+            return NAN
+    if math.isnan(shortfall(upper)):
+        return NAN
+    return float(sd * optimize.brentq(shortfall, 0.0, upper))
+
+
+def paired_comparison(reference_by_seed: dict[int, float],
+                      other_by_seed: dict[int, float]) -> dict:
+    """Other - reference on the seeds both have, NaN pairs dropped: {n, diff, diff_lo,
+    diff_hi, p, sd, mde80} (95% t-interval, two-sided paired t-test, MDE at 80% power)."""
+    seeds = sorted(set(reference_by_seed) & set(other_by_seed))
+    reference = np.asarray([reference_by_seed[s] for s in seeds], dtype=float)
+    other = np.asarray([other_by_seed[s] for s in seeds], dtype=float)
+    differences = other - reference  # NaN where either is; mean_ci and the test drop those
+    diff, lo, hi, n = mean_ci(differences)
+    _, p, _ = paired_t_test(reference, other)
+    sd = float(np.nanstd(differences, ddof=1)) if n >= 2 else NAN
+    return {"n": n, "diff": diff, "diff_lo": lo, "diff_hi": hi, "p": p, "sd": sd,
+            "mde80": minimum_detectable_effect(sd, n)}
+
+
+def rule_order(rows) -> list[str]:
+    """Rules in the order they first appear, the reference first."""
+    rules = list(dict.fromkeys(row["rule"] for row in rows))
+    if REFERENCE in rules:
+        rules.remove(REFERENCE)
+        rules.insert(0, REFERENCE)
+    return rules
+
+
+def _cells(rows) -> dict[tuple[str, str, int], dict[int, dict]]:
+    """{(task, rule, budget): {seed: row}}. Pairing needs one row per seed, so a repeated
+    (task, rule, budget, seed) is an error."""
+    cells: dict[tuple[str, str, int], dict[int, dict]] = defaultdict(dict)
+    for row in rows:
+        cell = cells[(row["task"], row["rule"], int(row["budget"]))]
+        seed = int(row["seed"])
+        if seed in cell:
+            raise ValueError(f"two rows for task {row['task']!r}, rule {row['rule']!r}, "
+                             f"budget {row['budget']}, seed {seed}")
+        cell[seed] = row
+    return cells
+
+
+def _by_seed(cell: dict[int, dict], metric: str) -> dict[int, float]:
+    return {seed: float(row.get(metric, NAN)) for seed, row in cell.items()}
+
+
+def summarize(rows) -> list[dict]:
+    """One dict per (task, rule, budget, metric): n, mean, ci_lo, ci_hi and, for rules other
+    than pebble, the `paired_comparison` with pebble as vs_pebble_* fields. Sorted by task,
+    metric (in `METRICS` order), budget, rule (`rule_order`)."""
+    cells = _cells(rows)
+    rules = rule_order(rows)
+    metrics = [m for m in METRICS if any(m in row for row in rows)]
+    summary = []
+    for task in sorted({task for task, _, _ in cells}):
+        budgets = sorted({budget for t, _, budget in cells if t == task})
+        for metric in metrics:
+            for budget in budgets:
+                reference = _by_seed(cells.get((task, REFERENCE, budget), {}), metric)
+                for rule in rules:
+                    if (task, rule, budget) not in cells:
+                        continue
+                    values = _by_seed(cells[(task, rule, budget)], metric)
+                    mean, lo, hi, n = mean_ci(list(values.values()))
+                    entry = {"task": task, "metric": metric, "budget": budget, "rule": rule,
+                             "n": n, "mean": mean, "ci_lo": lo, "ci_hi": hi}
+                    if rule != REFERENCE and REFERENCE in rules:
+                        comparison = paired_comparison(reference, values)
+                        entry.update({f"vs_pebble_{k}": v for k, v in comparison.items()})
+                    summary.append(entry)
+    return summary
+
+
+def _write_csv(path: Path, rows) -> None:
+    """Columns in the order they first appear; a row without a column leaves it blank."""
+    fields = list(dict.fromkeys(key for row in rows for key in row))
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def read_results(path: Path) -> list[dict]:
+    """Raw rows from a results.csv: budget and seed as int, the metrics as float (blank ->
+    NaN); other columns stay text, so that writing them again reproduces the file."""
+    rows = []
+    with Path(path).open(newline="") as f:
+        for row in csv.DictReader(f):
+            row["budget"], row["seed"] = int(row["budget"]), int(row["seed"])
+            for metric in METRICS:
+                if metric in row:
+                    row[metric] = float(row[metric]) if row[metric] != "" else NAN
+            rows.append(row)
+    return rows
+
+
+def png_name(task: str, metric: str) -> str:
+    return f"{task}_{metric}.png"
+
+
+def plot_metric(entries: list[dict], out_png: Path, title: str) -> Path:
+    """Mean over seeds against the label budget, one line per rule, its 95% CI shaded."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for rule in dict.fromkeys(e["rule"] for e in entries):
+        points = [e for e in entries if e["rule"] == rule]  # budget-sorted by summarize
+        budgets = [e["budget"] for e in points]
+        (line,) = ax.plot(budgets, [e["mean"] for e in points], marker="o", label=rule)
+        ax.fill_between(budgets, [e["ci_lo"] for e in points], [e["ci_hi"] for e in points],
+                        color=line.get_color(), alpha=0.2)
+    budgets = sorted({e["budget"] for e in entries})
+    if budgets[0] > 0 and budgets[-1] > 4 * budgets[0]:
+        ax.set_xscale("log")
+        ax.minorticks_off()
+    ax.set_xticks(budgets, [str(b) for b in budgets])  # ticks at the budgets that were run
+    ax.set_xlabel("preference labels")
+    ax.set_ylabel(METRIC_LABEL[entries[0]["metric"]])
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+    return out_png
+
+
+def _comparison_of(entry: dict) -> dict:
+    """The paired comparison stored in a summary entry, without the vs_pebble_ prefix."""
+    prefix = "vs_pebble_"
+    return {k[len(prefix):]: v for k, v in entry.items() if k.startswith(prefix)}
+
+
+def _p_text(p: float) -> str:
+    return "p < 0.001" if p < 0.001 else f"p = {p:.2g}"
+
+
+def _mean_cell(entry: dict) -> str:
+    return f"{entry['mean']:.3f} [{entry['ci_lo']:.3f}, {entry['ci_hi']:.3f}]"
+
+
+def _difference_cell(entry: dict) -> str:
+    c = _comparison_of(entry)
+    if c["n"] < 2:
+        return f"not testable, n={c['n']}"
+    return (f"{c['diff']:+.3f} [{c['diff_lo']:.3f}, {c['diff_hi']:.3f}], {_p_text(c['p'])}, "
+            f"n={c['n']}, MDE80={c['mde80']:.3f}")
+
+
+def comparison_sentence(entry: dict) -> str:
+    """Plain-language reading of one comparison with pebble; a difference the test does not
+    detect is stated as such, with the smallest difference this n would have detected."""
+    c = _comparison_of(entry)
+    head = f"{entry['rule']} − {REFERENCE} at {entry['budget']} labels"
+    if c["n"] < 2:
+        return f"{head}: not testable (n = {c['n']} paired seeds)"
+    estimate = (f"{c['diff']:+.3f} [{c['diff_lo']:.3f}, {c['diff_hi']:.3f}] "
+                f"({_p_text(c['p'])}, n = {c['n']})")
+    if c["p"] < ALPHA:
+        direction = "higher" if c["diff"] > 0 else "lower"
+        return f"{head}: {estimate}: {entry['rule']} {direction} than {REFERENCE}"
+    # MDE80 is NaN only when every paired difference is identical (sd 0).
+    detectable = (f"; this n detects ≥ {c['mde80']:.3f} with 80% power"
+                  if math.isfinite(c["mde80"]) else "")
+    return f"{head}: {estimate}: no difference detected{detectable}"
+
+
+def _table(entries: list[dict], cell) -> list[str]:
+    """Markdown table, rows = rules, columns = budgets."""
+    budgets = sorted({e["budget"] for e in entries})
+    by_key = {(e["rule"], e["budget"]): e for e in entries}
+    lines = ["| rule | " + " | ".join(f"{b} labels" for b in budgets) + " |",
+             "|---" * (len(budgets) + 1) + "|"]
+    for rule in dict.fromkeys(e["rule"] for e in entries):
+        cells = [cell(by_key[(rule, b)]) if (rule, b) in by_key else "–" for b in budgets]
+        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _method_line(rows) -> str:
+    seed_counts = sorted({len(cell) for cell in _cells(rows).values()})
+    seeds = (f"{seed_counts[0]}" if len(seed_counts) == 1
+             else f"{seed_counts[0]}–{seed_counts[-1]}")
+    return (f"{seeds} seeds per (task, rule, budget). Each cell is the mean over seeds with "
+            f"its 95% Student t-interval (NaN values dropped). Differences vs {REFERENCE} are "
+            f"rule − {REFERENCE} on the seeds both ran, with a 95% t-interval and a two-sided "
+            f"paired t-test (a difference is called higher/lower only at p < {ALPHA}); MDE80 is "
+            "the smallest true difference that test detects with 80% power at this n and the "
+            "observed sd of the paired differences (noncentral t).")
+
+
+def _by_task_metric(summary: list[dict]) -> dict[tuple[str, str], list[dict]]:
+    """Summary entries grouped by (task, metric), keeping the summary's order."""
+    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for entry in summary:
+        groups[(entry["task"], entry["metric"])].append(entry)
+    return groups
+
+
+def _markdown(rows, summary: list[dict], title: str) -> str:
+    lines = [f"# {title}", "", _method_line(rows), ""]
+    current_task = None
+    for (task, metric), entries in _by_task_metric(summary).items():
+        if task != current_task:
+            lines += [f"## {task}", ""]
+            current_task = task
+        label = METRIC_LABEL[metric]
+        lines += [f"### {label}", "", f"![{task}: {label}]({png_name(task, metric)})", ""]
+        lines += _table(entries, _mean_cell) + [""]
+        comparisons = [e for e in entries if "vs_pebble_n" in e]
+        if comparisons:
+            lines += [f"Paired differences vs {REFERENCE}:", ""]
+            lines += _table(comparisons, _difference_cell) + [""]
+            lines += [f"- {comparison_sentence(e)}" for e in comparisons] + [""]
+    return "\n".join(lines)
+
+
+def write_report(rows, out_dir, title: str = DEFAULT_TITLE) -> Path:
+    """Writes summary.csv, results.csv (the raw rows), <task>_<metric>.png and report.md to
+    `out_dir`; returns the path of report.md."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = summarize(rows)
+    _write_csv(out_dir / "results.csv", rows)
+    _write_csv(out_dir / "summary.csv", summary)
+    for (task, metric), entries in _by_task_metric(summary).items():
+        plot_metric(entries, out_dir / png_name(task, metric),
+                    f"{title}: {task}, {METRIC_LABEL[metric]}")
+    report = out_dir / "report.md"
+    report.write_text(_markdown(rows, summary, title))
+    return report
+
+
+def main(argv=None) -> Path:
+    parser = argparse.ArgumentParser(
+        prog="python -m hprior_jax.experiments.lab_report",
+        description="Rebuild a reward-learning lab report from its raw results.csv.")
+    parser.add_argument("results_csv", type=Path)
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--title", default=DEFAULT_TITLE)
+    args = parser.parse_args(argv)
+    report = write_report(read_results(args.results_csv), args.out_dir, args.title)
+    print(report)
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,153 @@
+"""The reward-learning lab's fixed data: episodes of mixed quality with their true rewards.
+
+`build(task, seed)` trains SAC on the true reward for `steps` steps (one seed, the project's
+own loop and preset) and keeps its whole replay buffer as episodes: uniform-random episodes
+first, then a policy that improves episode by episode, which is the kind of data PbRL's
+queries are drawn from in the RL loop. Every `heldout_every`-th episode is held out, so both
+sets span the whole learning curve. From the held-out episodes it draws fixed segment pairs
+labelled by the oracle (pairs with equal true returns are not kept: they have no answer).
+Deterministic from (task, seed, steps, preset): the file name says all four.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hprior_jax.envs import task_info
+
+DEFAULT_STEPS = 50_000  # the reduced RL run's length: PbRL there sees a buffer like this one
+HELDOUT_PAIRS = 2000
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """obs[E, L, ds], act[E, L, da], reward[E, L] for the training and held-out episodes;
+    held-out pairs as (episode, start) of each segment and the oracle label (1 = second
+    preferred)."""
+
+    task: str
+    segment_len: int
+    train_obs: np.ndarray
+    train_act: np.ndarray
+    train_reward: np.ndarray
+    test_obs: np.ndarray
+    test_act: np.ndarray
+    test_reward: np.ndarray
+    pair_index: np.ndarray  # [P, 4] int: episode 1, start 1, episode 2, start 2
+    pair_label: np.ndarray  # [P] int32
+    info: dict  # how it was made: seed, steps, preset, build seconds, returns
+
+    @property
+    def episode_length(self) -> int:
+        return self.train_reward.shape[1]
+
+    def save(self, path: Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                  if isinstance(getattr(self, f.name), np.ndarray)}
+        meta = dict(task=self.task, segment_len=self.segment_len, info=self.info)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)), **arrays)
+        os.replace(tmp, path)  # a kill mid-write leaves no half file under the final name
+        return path
+
+    @staticmethod
+    def load(path: Path) -> "Dataset":
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+        return Dataset(task=meta["task"], segment_len=meta["segment_len"], info=meta["info"],
+                       **arrays)
+
+
+def cache_dir() -> Path:
+    """$HPRIOR_LAB_CACHE, else ~/.cache/hprior_jax/lab (datasets are not kept in git)."""
+    return Path(os.environ.get("HPRIOR_LAB_CACHE", Path.home() / ".cache/hprior_jax/lab"))
+
+
+def dataset_path(task: str, seed: int, steps: int, preset: str) -> Path:
+    return cache_dir() / f"{task}_sac-{preset}_{steps}steps_seed{seed}.npz"
+
+
+def split_episodes(obs, act, reward, episode_length: int, heldout_every: int = 3):
+    """Replay rows (one env, never wrapped) -> (train, held-out) episode arrays; episode e
+    is held out when e % heldout_every == heldout_every - 1."""
+    n = reward.shape[0] // episode_length
+    ep = lambda x: x[: n * episode_length].reshape((n, episode_length) + x.shape[1:])
+    held = np.arange(n) % heldout_every == heldout_every - 1
+    return [(ep(x)[~held], ep(x)[held]) for x in (obs, act, reward)]
+
+
+def heldout_pairs(reward: np.ndarray, segment_len: int, num_pairs: int,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """`num_pairs` random segment pairs of the held-out episodes with distinct true returns,
+    and their oracle labels (1 when the second segment's true return is higher)."""
+    e, length = reward.shape
+    cum = np.concatenate([np.zeros((e, 1)), np.cumsum(reward, axis=1, dtype=np.float64)], 1)
+    seg_return = lambda ep, st: cum[ep, st + segment_len] - cum[ep, st]
+    index, labels, found = [], [], 0
+    for _ in range(100):
+        starts = lambda: rng.integers(0, length - segment_len + 1, num_pairs)
+        cand = np.stack([rng.integers(0, e, num_pairs), starts(),
+                         rng.integers(0, e, num_pairs), starts()], 1)
+        r1, r2 = seg_return(cand[:, 0], cand[:, 1]), seg_return(cand[:, 2], cand[:, 3])
+        keep = r1 != r2
+        index.append(cand[keep])
+        labels.append((r2 > r1)[keep].astype(np.int32))
+        found += int(keep.sum())
+        if found >= num_pairs:
+            return np.concatenate(index)[:num_pairs], np.concatenate(labels)[:num_pairs]
+    raise ValueError(f"found only {found} held-out pairs with distinct true returns")
+
+
+def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "reduced",
+          heldout_every: int = 3, num_pairs: int = HELDOUT_PAIRS,
+          progress: bool = True) -> Dataset:
+    """Trains SAC on the true reward (the `preset`'s networks, one seed) and turns its replay
+    buffer into a Dataset with the preset's query segment length. Takes minutes: one SAC run
+    of `steps` steps."""
+    from hprior_jax import presets
+    from hprior_jax.loop import host
+    from hprior_jax.methods import registry
+
+    length = task_info(task).episode_length
+    segment_len = presets.train_preset(task, registry.LAB_REFERENCE, preset).pebble.segment_len
+    if steps % length or steps // length < 2 * heldout_every:
+        raise ValueError(f"--steps must be a multiple of the episode length ({length}) and "
+                         f"hold at least {2 * heldout_every} episodes")
+    t0 = time.perf_counter()
+    cfg = presets.train_preset(task, registry.REFERENCE, preset, steps=steps, seeds=(seed,),
+                               eval_every=steps, checkpoint_every=steps)
+    with tempfile.TemporaryDirectory() as tmp:
+        rs = host.run(dataclasses.replace(cfg, out=tmp), Path(tmp), progress=progress)
+    buf = rs.replay
+    rows = lambda x: np.asarray(x)[0, :steps]
+    (tr_o, te_o), (tr_a, te_a), (tr_r, te_r) = split_episodes(
+        rows(buf.obs), rows(buf.action), rows(buf.true_reward), length, heldout_every)
+    index, labels = heldout_pairs(te_r, segment_len, num_pairs, np.random.default_rng(seed))
+    returns = np.concatenate([tr_r, te_r]).sum(1)
+    info = dict(seed=seed, steps=steps, preset=preset, source=f"SAC ({preset}) replay buffer",
+                build_seconds=round(time.perf_counter() - t0, 1),
+                train_episodes=int(tr_r.shape[0]), test_episodes=int(te_r.shape[0]),
+                episode_return_min=float(returns.min()), episode_return_max=float(returns.max()),
+                episode_return_median=float(np.median(returns)))
+    return Dataset(task=task, segment_len=segment_len, train_obs=tr_o, train_act=tr_a,
+                   train_reward=tr_r, test_obs=te_o, test_act=te_a, test_reward=te_r,
+                   pair_index=index, pair_label=labels, info=info)
+
+
+def load_or_build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "reduced",
+                  progress: bool = True) -> tuple[Dataset, Path]:
+    path = dataset_path(task, seed, steps, preset)
+    if path.exists():
+        return Dataset.load(path), path
+    data = build(task, seed, steps, preset, progress=progress)
+    return data, data.save(path)

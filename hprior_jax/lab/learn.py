@@ -1,0 +1,315 @@
+"""Reward learning on fixed data, every (seed, rule) cell in one compiled program.
+
+A cell trains one reward ensemble the way the RL loop's feedback rounds do (queries from the
+training episodes, the first round uniform, then `feed_type`; the teacher; `train_reward` with
+its epochs and 0.97 early stop, on every stored pair), with CE + λ·L_prior where the rule
+decides the credit α of each stored pair:
+
+  none           PEBBLE: cross-entropy only (λ = 0)
+  attention      PRIOR: the world model's attention credit (the RL loop's α)
+  attention_nrp  PRIOR-NRP: the same α min-max normalised and softmaxed (appendix eq. 9)
+  uniform        RVAR: 1/|σ|
+  positional     control: the mean attention α at each position, the same for every segment
+                 (what is left of α without state information)
+  oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
+                 bound for any credit rule; the only rule that reads true rewards)
+
+Budgets are checkpoints of one run per cell: rounds of `queries_per_round`, clipped so the
+label count lands on every budget (for budgets 25 and 100 at 10 per round: 10, 10, 5, then 10
+... 10, 5); a separate run per budget would differ only in those round boundaries. The world
+model is trained once per seed on the training episodes, before any round, and is fixed
+after (the RL loop keeps training it; here the data does not change), so each pair's α is
+computed once, when the pair is stored.
+
+Cells are vmapped twice, rules inside seeds: the world model of a seed is shared by its rules,
+not copied. All rules share the seed's random streams (initial reward weights, queries,
+minibatch order), so a paired comparison between rules of one seed removes that variance; with
+`feed_type="uniform"` every rule of a seed also gets exactly the same labels.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from hprior_jax.buffers import preferences
+from hprior_jax.lab.dataset import Dataset
+from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
+from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_reward
+from hprior_jax.pbrl.query import select_queries
+from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
+from hprior_jax.prior import world_model as wm
+from hprior_jax.prior.attention import segment_credit
+from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term
+
+CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle")
+CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
+_WM_STREAM = 0x574D
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    rules: tuple[str, ...]  # rule names, in report order
+    credits: tuple[str, ...]  # the credit of each rule (CREDITS)
+    lam: float  # λ of every rule with a credit (the RL presets': 5 DMC, 1000 MetaWorld)
+    budgets: tuple[int, ...] = (25, 100, 400)
+    queries_per_round: int = 10
+    feed_type: str = "disagreement"
+    large_batch: int = 10
+    one_shot: bool = False
+    """Train once on all of a budget's labels (uniform queries) instead of round by round."""
+    seeds: tuple[int, ...] = tuple(range(20))
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    preference: PreferenceConfig = field(default_factory=PreferenceConfig)
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    world_model: wm.WorldModelConfig | None = None
+    wm_pretrain_steps: int = 300
+    wm_steps: int = 600  # dynamics-only steps after the pre-training
+    attention_query: str = "action"
+    profile_segments: int = 256  # training segments the positional profile averages
+
+    def __post_init__(self):
+        if len(self.rules) != len(self.credits) or not self.rules:
+            raise ValueError("give one credit per rule")
+        bad = set(self.credits) - set(CREDITS)
+        if bad:
+            raise ValueError(f"unknown credit {sorted(bad)}; available: {', '.join(CREDITS)}")
+        if list(self.budgets) != sorted(set(self.budgets)) or self.budgets[0] < 1:
+            raise ValueError(f"budgets must be increasing positive label counts: {self.budgets}")
+        if self.needs_world_model and self.world_model is None:
+            raise ValueError("a rule with attention or positional credit needs a world model")
+
+    @property
+    def needs_world_model(self) -> bool:
+        return bool({"attention", "attention_nrp", "positional"} & set(self.credits))
+
+    def rounds(self) -> list[tuple[int, int | None]]:
+        """(queries, budget reached after it or None) of every round, round by round."""
+        out, labels = [], 0
+        for budget in self.budgets:
+            while labels < budget:
+                n = min(self.queries_per_round, budget - labels)
+                labels += n
+                out.append((n, budget if labels == budget else None))
+        return out
+
+
+@struct.dataclass
+class Cell:
+    """One (seed, rule): its reward ensemble and the labelled pairs with their credit."""
+
+    reward: dict
+    opt: optax.OptState
+    prefs: preferences.PreferenceStore
+    credit: PairCredit
+    key: jax.Array
+
+
+@struct.dataclass
+class Episodes:
+    """obs[E, L, ds], act[E, L, da], reward[E, L] (true rewards: the teacher's and the
+    oracle credit's only)."""
+
+    obs: jax.Array
+    act: jax.Array
+    reward: jax.Array
+
+
+@struct.dataclass
+class SeedContext:
+    """What a seed's rules share: the world model and its mean α per position."""
+
+    wm_params: wm.WorldModelParams | None
+    profile: jax.Array  # [T]
+
+
+class Lab:
+    def __init__(self, cfg: LabConfig, data: Dataset):
+        self.cfg, self.data = cfg, data
+        self.obs_size = data.train_obs.shape[-1]
+        self.act_size = data.train_act.shape[-1]
+        self.T = data.segment_len
+        self.tx = make_optimizer(cfg.preference)
+        self.credit_index = jnp.asarray([CREDITS.index(c) for c in cfg.credits], jnp.int32)
+        self.lams = jnp.asarray([0.0 if c == "none" else cfg.lam for c in cfg.credits],
+                                jnp.float32)
+        d = data
+        # passed to the programs as arguments (not baked in as constants), so labs on data
+        # of the same shapes share compiled programs
+        self.train = Episodes(obs=jnp.asarray(d.train_obs), act=jnp.asarray(d.train_act),
+                              reward=jnp.asarray(d.train_reward))
+        self.test = Episodes(obs=jnp.asarray(d.test_obs), act=jnp.asarray(d.test_act),
+                             reward=jnp.zeros(d.test_reward.shape, jnp.float32))  # not read
+        # the teacher's margin: BPref's mean return of recent episodes; here of the data
+        self.mean_return = jnp.float32(d.train_reward.sum(1).mean())
+        self.seconds: dict[str, float] = {}
+        self.compile_seconds: dict[str, float] = {}
+        self.adam_steps = 0  # reward-ensemble minibatch steps run (the sweep's cost)
+
+    # -- per seed -----------------------------------------------------------------------
+    def seed_context(self, key: jax.Array, train: Episodes) -> SeedContext:
+        cfg = self.cfg
+        if not cfg.needs_world_model:
+            return SeedContext(wm_params=None, profile=jnp.full((self.T,), 1.0 / self.T))
+        k_init, k_pre, k_dyn, k_seg = jax.random.split(jax.random.fold_in(key, _WM_STREAM), 4)
+        obs, act = train.obs, train.act
+        flat = lambda x: x.reshape((-1,) + x.shape[2:])
+        train = partial(wm.train, obs_buf=flat(obs), act_buf=flat(act),
+                        size=jnp.int32(obs.shape[0] * obs.shape[1]), cfg=cfg.world_model,
+                        episode_len=obs.shape[1], dynamics_model=True)
+        state = wm.init(k_init, cfg.world_model)
+        state, _ = train(state, k_pre, num_steps=cfg.wm_pretrain_steps, observation_model=True)
+        if cfg.wm_steps:
+            state, _ = train(state, k_dyn, num_steps=cfg.wm_steps, observation_model=False)
+        seg_obs, seg_act = wm.sample_segments(
+            k_seg, flat(obs), flat(act), jnp.int32(obs.shape[0] * obs.shape[1]),
+            episode_len=obs.shape[1], batch_size=cfg.profile_segments, segment_len=self.T)
+        alpha = segment_credit(state.params, seg_obs, seg_act, cfg.world_model,
+                               query=cfg.attention_query)
+        return SeedContext(wm_params=state.params, profile=alpha.mean(0))
+
+    def init_cell(self, key: jax.Array, capacity: int) -> Cell:
+        params = init_reward_ensemble(key, self.obs_size, self.act_size, self.cfg.reward)
+        return Cell(reward=params, opt=self.tx.init(params),
+                    prefs=preferences.init(self.T, self.obs_size, self.act_size, capacity),
+                    credit=PairCredit.uniform(capacity, self.T), key=key)
+
+    # -- per cell -----------------------------------------------------------------------
+    def credit(self, ctx: SeedContext, credit_id, obs, act, true_r) -> jax.Array:
+        """α[B, T] of segments under the rule `credit_id` (an index into CREDITS)."""
+        uniform = jnp.full(true_r.shape, 1.0 / self.T)
+        if ctx.wm_params is None:
+            attention = uniform
+        else:
+            attention = segment_credit(ctx.wm_params, obs, act, self.cfg.world_model,
+                                       query=self.cfg.attention_query)
+        share = jnp.maximum(true_r, 0.0)
+        total = share.sum(-1, keepdims=True)
+        oracle = jnp.where(total > 1e-8, share / jnp.maximum(total, 1e-8), uniform)
+        options = {"none": uniform, "attention": attention,
+                   "attention_nrp": nrp_alpha(attention), "uniform": uniform,
+                   "positional": jnp.broadcast_to(ctx.profile, true_r.shape), "oracle": oracle}
+        return jnp.stack([options[c] for c in CREDITS])[credit_id]
+
+    def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, num_queries, first,
+              train: Episodes, mean_return, *, queries: int):
+        """Query -> teacher -> credit of the new pairs -> reward update on every stored pair.
+        The first round's queries are uniform (as in BPref), later ones `feed_type`: both are
+        drawn and `first` (traced) picks, so every round runs one compiled program."""
+        cfg = self.cfg
+        key, k_query, k_teacher, k_train = jax.random.split(cell.key, 4)
+        select = lambda rule: select_queries(
+            k_query, cell.reward, train.obs, train.act, train.reward,
+            jnp.int32(train.obs.shape[0]), rule=rule, mb_size=queries, segment_len=self.T,
+            large_batch=cfg.large_batch, num_queries=num_queries, reward_cfg=cfg.reward)
+        pairs = select("uniform")
+        if cfg.feed_type != "uniform":
+            pairs = jax.tree.map(partial(jnp.where, first), pairs, select(cfg.feed_type))
+        thresholds = compute_thresholds(cfg.teacher, mean_return, self.T,
+                                        self.data.episode_length, first_round=first)
+        out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, cfg.teacher, thresholds)
+        keep = out.valid & pairs.mask
+        both = lambda a, b: jnp.concatenate([a, b])
+        alpha = self.credit(ctx, credit_id, both(pairs.obs1, pairs.obs2),
+                            both(pairs.act1, pairs.act2), both(pairs.true_r1, pairs.true_r2))
+        slot = preferences.slots(cell.prefs, keep)
+        credit = PairCredit(alpha1=preferences.put_rows(cell.credit.alpha1, alpha[:queries], slot),
+                            alpha2=preferences.put_rows(cell.credit.alpha2, alpha[queries:], slot))
+        prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
+            pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
+        params, opt, m = train_reward(cell.reward, cell.opt, prefs, k_train, tx=self.tx,
+                                      reward_cfg=cfg.reward, cfg=cfg.preference,
+                                      terms=(prior_term(lam, credit, "raw"),))
+        metrics = {"labels": prefs.count, "epochs": m["reward/epochs"],
+                   "train_acc": m["reward/train_acc"], "ce": m["reward/loss"],
+                   "prior_loss": m["prior/loss"]}
+        return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
+
+    def predict(self, cell: Cell, test: Episodes) -> jax.Array:
+        """r̂ (the ensemble mean, what the agent trains on) of every held-out state [E, L]."""
+        return mean_reward(cell.reward, test.obs, test.act, self.cfg.reward)
+
+    # -- compiled over cells [S, R] -----------------------------------------------------
+    def _compiled(self, name: str, fn, *args, donate=()):
+        """jit(fn) compiled ahead of time once per process for every lab with the same
+        settings and argument shapes (compile time measured apart)."""
+        static = tuple(getattr(self.cfg, f.name) for f in dataclasses.fields(self.cfg)
+                       if f.name not in _ARGUMENTS)
+        key = (name, static, self.cfg.needs_world_model, self.T, self.data.episode_length, jax.tree.structure(args),
+               tuple((x.shape, x.dtype) for x in jax.tree.leaves(args)))
+        if key not in _PROGRAMS:
+            t0 = time.perf_counter()
+            _PROGRAMS[key] = jax.jit(fn, donate_argnums=donate).lower(*args).compile()
+            self.compile_seconds[name] = time.perf_counter() - t0
+        return _PROGRAMS[key]
+
+    def _timed(self, name, fn, *args):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+        return out
+
+    def init_cells(self, keys: jax.Array, capacity: int) -> Cell:
+        """[S, R] cells: every rule of a seed starts from the same weights and key."""
+        r = len(self.cfg.rules)
+        one = lambda k: jax.tree.map(lambda x: jnp.broadcast_to(x, (r,) + x.shape),
+                                     self.init_cell(k, capacity))
+        return jax.jit(jax.vmap(one))(keys)
+
+    def run(self, progress=print) -> list[dict]:
+        """Every cell through every budget. -> rows (seed, rule, budget, the held-out
+        predictions [E, L] as `prediction`, and the budget's last round's metrics)."""
+        cfg = self.cfg
+        keys = jnp.stack([jax.random.PRNGKey(s) for s in cfg.seeds])
+        seed_context = self._compiled("world_model", jax.vmap(self.seed_context, (0, None)),
+                                      keys, self.train)
+        ctx = self._timed("world_model", seed_context, keys, self.train)
+        # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
+        over_cells = lambda fn, seed_axes, rule_axes: jax.vmap(jax.vmap(fn, rule_axes), seed_axes)
+        rounds_fn = lambda q: over_cells(partial(self.round, queries=q),
+                                         (0, 0, None, None) + (None,) * 4,
+                                         (0, None, 0, 0) + (None,) * 4)
+        predict_fn = over_cells(self.predict, (0, None), (0, None))
+        if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
+            schedule = [[(b, b)] for b in cfg.budgets]
+        else:
+            schedule = [cfg.rounds()]
+        rows = []
+        for rounds in schedule:
+            capacity = rounds[-1][1]
+            cells = self.init_cells(keys, capacity)
+            queries = capacity if cfg.one_shot else cfg.queries_per_round
+            for i, (n, budget) in enumerate(rounds):
+                args = (cells, ctx, self.credit_index, self.lams, jnp.int32(n),
+                        jnp.asarray(i == 0), self.train, self.mean_return)
+                fn = self._compiled(f"round/{queries}", rounds_fn(queries), *args, donate=0)
+                cells, m = self._timed("rounds", fn, *args)  # the old cells are donated
+                m = jax.device_get(m)
+                batches = -(-int(np.max(m["labels"])) // cfg.preference.batch_size)
+                # vmapped, a round runs until its slowest cell stops: that is what it costs
+                self.adam_steps += int(np.max(m["epochs"])) * batches
+                if budget is None:
+                    continue
+                predict = self._compiled("predict", predict_fn, cells, self.test)
+                pred = np.asarray(self._timed("predict", predict, cells, self.test))
+                for si, seed in enumerate(cfg.seeds):
+                    for ri, rule in enumerate(cfg.rules):
+                        rows.append(dict(seed=seed, rule=rule, budget=budget,
+                                         prediction=pred[si, ri],
+                                         **{k: np.asarray(v)[si, ri].item() for k, v in m.items()}))
+                progress(f"{budget} labels: {len(cfg.seeds)} seeds x {len(cfg.rules)} rules, "
+                         f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
+                         f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
+        return rows
+
+
+# LabConfig fields that reach the programs as arguments or only the host schedule
+_ARGUMENTS = ("rules", "credits", "lam", "seeds", "budgets", "one_shot")
+_PROGRAMS: dict = {}  # compiled lab programs of this process (see Lab._compiled)

@@ -1,0 +1,108 @@
+"""`hprior reward-lab`: a task's dataset, every rule x budget x seed, metrics, report.
+
+The lab takes the RL loop's own settings for the task from its `preset` (reward ensemble,
+reward-update schedule, segment length, queries per round, λ, world-model sizes), so a rule
+trains its reward exactly as in an RL run of that preset, only on fixed data.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import resource
+import time
+from pathlib import Path
+
+
+from hprior_jax.lab.dataset import Dataset
+from hprior_jax.lab.learn import CONTROLS, Lab, LabConfig
+from hprior_jax.lab.metrics import reward_quality
+from hprior_jax.methods import registry
+from hprior_jax.networks.reward_ensemble import RewardConfig
+from hprior_jax.pbrl.preference import PreferenceConfig
+from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
+
+
+def rules() -> dict[str, str]:
+    """{rule: credit}: every registered method that learns a reward from preferences, in
+    the registry's order, then the lab's controls."""
+    methods = {n: registry.get(n).lab_credit for n in registry.names()}
+    return {**{n: c for n, c in methods.items() if c is not None}, **CONTROLS}
+
+
+def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20,
+               budgets=(25, 100, 400), queries_per_round: int | None = None,
+               feed_type: str | None = None, teacher: str = "oracle", one_shot: bool = False,
+               lam: float | None = None) -> LabConfig:
+    from hprior_jax import presets
+
+    known = rules()
+    rule_names = list(rule_names or known)
+    unknown = [r for r in rule_names if r not in known]
+    if unknown:
+        raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
+    if teacher not in TEACHERS:
+        raise ValueError(f"unknown teacher {teacher!r}; available: {', '.join(TEACHERS)}")
+    rl = presets.train_preset(data.task, registry.PROPOSED, preset)
+    p, prior = rl.pebble, rl.prior
+    if p.segment_len != data.segment_len:
+        raise ValueError(f"the dataset's segments are {data.segment_len} steps, the preset's "
+                         f"{p.segment_len}")
+    # the world-model steps of an RL run as long as the dataset: pre-training at the first
+    # round, then `wm_update_steps` every `wm_every` env steps
+    first_round = rl.num_seed_steps + p.num_unsup_steps
+    updates = max(0, (data.info.get("steps", 0) - first_round) // prior.wm_every)
+    return LabConfig(
+        rules=tuple(rule_names), credits=tuple(known[r] for r in rule_names),
+        lam=prior.lam if lam is None else lam, budgets=tuple(budgets),
+        queries_per_round=queries_per_round or p.queries_per_round,
+        feed_type=feed_type or p.feed_type, large_batch=p.large_batch, one_shot=one_shot,
+        seeds=tuple(range(seeds)) if isinstance(seeds, int) else tuple(seeds),
+        reward=RewardConfig(hidden_sizes=(p.reward_hidden,) * p.reward_depth,
+                            ensemble_size=p.ensemble_size),
+        preference=PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
+                                    lr=p.reward_lr),
+        teacher=TEACHERS[teacher],
+        world_model=prior.world_model(data.train_obs.shape[-1], data.train_act.shape[-1],
+                                      data.segment_len),
+        wm_pretrain_steps=prior.wm_pretrain_steps, wm_steps=updates * prior.wm_update_steps,
+        attention_query=prior.attention_query)
+
+
+def score(rows: list[dict], data: Dataset) -> list[dict]:
+    """Lab rows with predictions -> rows of (task, rule, budget, seed, the held-out metrics,
+    the round's training metrics); predictions dropped."""
+    out = []
+    for row in rows:
+        row = dict(row)
+        quality = reward_quality(row.pop("prediction"), data.test_reward, data.pair_index,
+                                 data.pair_label, data.segment_len)
+        head = {k: row.pop(k) for k in ("rule", "budget", "seed")}
+        out.append({"task": data.task, **head, **quality, **row})
+    return out
+
+
+def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print) -> dict:
+    """Runs the sweep; writes OUT/run_info.json (time, memory, settings) and the report
+    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs)."""
+    from hprior_jax.experiments.lab_report import write_report
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    lab = Lab(cfg, data)
+    rows = score(lab.run(progress), data)
+    wall = time.perf_counter() - t0
+    cells = len(cfg.seeds) * len(cfg.rules)
+    info = {
+        "task": data.task, "dataset": data.info, "wall_seconds": round(wall, 1),
+        "seconds": {k: round(v, 1) for k, v in lab.seconds.items()},
+        "compile_seconds": {k: round(v, 1) for k, v in lab.compile_seconds.items()},
+        "cells": cells, "adam_steps": lab.adam_steps,
+        "ms_per_adam_step_per_cell": round(1000 * lab.seconds.get("rounds", 0.0)
+                                           / max(lab.adam_steps * cells, 1), 2),
+        "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
+        "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
+    }
+    (out / "run_info.json").write_text(json.dumps(info, indent=2))
+    write_report(rows, out, title=f"Reward-learning lab: {data.task}")
+    return info

@@ -1,0 +1,144 @@
+"""Reward-learning lab report: intervals, paired tests and power against scipy computed
+independently here, and the written report on a small synthetic lab."""
+import csv
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from hprior_jax.experiments import lab_report
+from hprior_jax.experiments.lab_report import (METRICS, mean_ci, minimum_detectable_effect,
+                                               paired_comparison, paired_power, summarize,
+                                               write_report)
+
+
+def _power_by_nct(effects, sd, n, alpha=0.05):
+    """Two-sided paired t-test power, written out here so the module is not its own check."""
+    df = n - 1
+    critical = stats.t.ppf(1 - alpha / 2, df)
+    noncentrality = np.asarray(effects) * math.sqrt(n) / sd
+    return stats.nct.sf(critical, df, noncentrality) + stats.nct.cdf(-critical, df, noncentrality)
+
+
+def test_mean_ci_is_the_t_interval_without_nans():
+    values = [0.61, 0.72, float("nan"), 0.58, 0.69, 0.75]
+    kept = np.array([0.61, 0.72, 0.58, 0.69, 0.75])
+    for level in (0.95, 0.9):
+        mean, lo, hi, n = mean_ci(values, level)
+        want_lo, want_hi = stats.t.interval(level, 4, loc=kept.mean(), scale=stats.sem(kept))
+        assert n == 5
+        assert mean == pytest.approx(kept.mean(), abs=1e-12)
+        assert (lo, hi) == pytest.approx((want_lo, want_hi), abs=1e-12)
+    mean, lo, hi, n = mean_ci([0.4, float("nan")])
+    assert (mean, n) == (0.4, 1) and math.isnan(lo) and math.isnan(hi)
+
+
+def test_paired_comparison_uses_common_non_nan_seeds():
+    reference = {0: 0.50, 1: 0.60, 2: 0.55, 3: 0.70, 4: 0.65, 5: float("nan"), 9: 0.10}
+    other = {0: 0.55, 1: 0.62, 2: 0.60, 3: 0.71, 4: 0.70, 5: 0.80, 7: 0.90}
+    ref, oth = np.array([0.50, 0.60, 0.55, 0.70, 0.65]), np.array([0.55, 0.62, 0.60, 0.71, 0.70])
+    d = oth - ref
+    lo, hi = stats.t.interval(0.95, 4, loc=d.mean(), scale=stats.sem(d))
+
+    got = paired_comparison(reference, other)
+
+    assert got["n"] == 5
+    assert got["diff"] == pytest.approx(d.mean(), abs=1e-12)
+    assert (got["diff_lo"], got["diff_hi"]) == pytest.approx((lo, hi), abs=1e-12)
+    assert got["p"] == pytest.approx(stats.ttest_rel(oth, ref).pvalue, abs=1e-12)
+    assert got["sd"] == pytest.approx(d.std(ddof=1), abs=1e-12)
+    assert got["mde80"] == pytest.approx(minimum_detectable_effect(d.std(ddof=1), 5), rel=1e-9)
+
+
+def test_power_is_alpha_at_zero_and_target_at_mde_and_grows_with_n_and_effect():
+    sd, n = 0.1, 10
+    mde = minimum_detectable_effect(sd, n)
+    assert paired_power(mde, sd, n) == pytest.approx(0.80, abs=1e-3)
+    assert paired_power(-mde, sd, n) == pytest.approx(0.80, abs=1e-3)  # two-sided
+    assert paired_power(0.0, sd, n) == pytest.approx(0.05, abs=1e-3)
+    assert paired_power(0.0, sd, n, alpha=0.01) == pytest.approx(0.01, abs=1e-3)
+    by_n = [paired_power(0.05, sd, m) for m in (3, 5, 10, 20, 40)]
+    by_effect = [paired_power(e, sd, n) for e in (0.01, 0.03, 0.05, 0.1)]
+    assert np.all(np.diff(by_n) > 0) and np.all(np.diff(by_effect) > 0)
+    assert math.isnan(paired_power(0.05, sd, 1)) and math.isnan(minimum_detectable_effect(0.0, n))
+
+
+def test_mde80_matches_brute_force_search_and_exceeds_normal_approximation():
+    sd, n, step = 0.2, 8, 1e-5
+    effects = np.arange(0.0, 0.5, step)
+    brute = effects[np.argmax(_power_by_nct(effects, sd, n) >= 0.80)]
+
+    mde = minimum_detectable_effect(sd, n)
+
+    assert brute - step <= mde <= brute
+    normal_approximation = (stats.norm.ppf(0.975) + stats.norm.ppf(0.80)) * sd / math.sqrt(n)
+    assert mde > 1.1 * normal_approximation  # with 7 df the t-test needs clearly more
+
+
+BUDGETS = (25, 100, 400)
+SEED_NOISE = (0.0, 0.02, -0.01, 0.03, -0.02)  # shared by the rules: seeds are paired
+SMALL_NOISE = (0.004, -0.004, 0.008, -0.008, 0.0)  # sums to 0: "same" equals pebble on average
+
+
+def _synthetic_rows():
+    """One task, rules appearing as better, pebble, same (pebble must still come first)."""
+    rows = []
+    for rule, shift in (("better", 0.1), ("pebble", 0.0), ("same", 0.0)):
+        for budget in BUDGETS:
+            for seed in range(5):
+                base = 0.5 + 0.05 * math.log(budget / 25) + SEED_NOISE[seed] + shift
+                jitter = SMALL_NOISE[seed] if rule != "pebble" else 0.0
+                row = {"task": "toy", "rule": rule, "budget": budget, "seed": seed,
+                       "wall_s": 12.5, "note": "synthetic"}
+                for k, metric in enumerate(METRICS):
+                    row[metric] = base + jitter - 0.05 * k
+                rows.append(row)
+    # A NaN pebble value at the seed whose jitter is 0: "same" stays equal to pebble on average.
+    next(r for r in rows if (r["rule"], r["budget"], r["seed"]) == ("pebble", 25, 4)
+         )["kendall_tau"] = float("nan")
+    return rows
+
+
+def test_summarize_orders_and_compares_only_against_pebble():
+    summary = summarize(_synthetic_rows())
+
+    assert len(summary) == len(METRICS) * len(BUDGETS) * 3
+    keys = [(e["metric"], e["budget"], e["rule"]) for e in summary]
+    rules = ("pebble", "better", "same")
+    assert keys == [(m, b, r) for m in METRICS for b in BUDGETS for r in rules]
+    assert all(("vs_pebble_p" in e) == (e["rule"] != "pebble") for e in summary)
+    nan_cell = next(e for e in summary if (e["metric"], e["budget"], e["rule"])
+                    == ("kendall_tau", 25, "better"))
+    assert nan_cell["n"] == 5 and nan_cell["vs_pebble_n"] == 4
+    assert nan_cell["vs_pebble_diff"] == pytest.approx(0.1, abs=1e-9)
+
+
+def test_summarize_rejects_a_repeated_seed():
+    rows = _synthetic_rows()
+    with pytest.raises(ValueError, match="two rows"):
+        summarize(rows + [dict(rows[0])])
+
+
+def test_write_report_and_main_regenerate_it(tmp_path):
+    out = tmp_path / "lab"
+    report = write_report(_synthetic_rows(), out)
+
+    assert report == out / "report.md"
+    text = report.read_text()
+    assert "5 seeds per (task, rule, budget)" in text
+    for metric in METRICS:
+        assert (out / f"toy_{metric}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    better = [line for line in text.splitlines() if line.startswith("- better − pebble at")]
+    same = [line for line in text.splitlines() if line.startswith("- same − pebble at")]
+    assert len(better) == len(same) == len(METRICS) * len(BUDGETS)
+    assert all("better higher than pebble" in line for line in better)
+    assert all("no difference detected; this n detects ≥" in line for line in same)
+    assert not any("higher" in line or "lower" in line for line in same)
+    with (out / "summary.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == len(METRICS) * len(BUDGETS) * 3
+
+    again = tmp_path / "again"
+    assert lab_report.main([str(out / "results.csv"), str(again)]) == again / "report.md"
+    for name in ("summary.csv", "results.csv", "report.md"):
+        assert (again / name).read_bytes() == (out / name).read_bytes()
