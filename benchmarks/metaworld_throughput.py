@@ -6,20 +6,23 @@ MJX: env steps/s (one env step = 5 physics substeps) of `jit(lax.scan(vmap(step)
 given batch, random actions, best of `--repeats` timed runs after compile; compile time is
 reported apart. C: metaworld's `env.step` (gymnasium, 5 x mj_step + obs + reward) on one
 core, random actions. Writes benchmarks/results/metaworld_throughput.csv.
+
+`--variant arm|free` builds the port with that scene (tasks/metaworld/sawyer.py) instead of
+the registered one and labels the rows with it (column `scene`).
 """
 from __future__ import annotations
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax)
 
 import argparse
-import csv
 import os
 import time
+from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
+from benchmarks._timing import read_rows, write_rows
 from tasks.metaworld.reference import make_env, metaworld_version
 
 TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
@@ -69,33 +72,32 @@ def main():
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", default=RESULTS)
+    p.add_argument("--variant", default=None, choices=["arm", "free"])
+    p.add_argument("--wrist", default=None, help="box or a number of hull points")
+    p.add_argument("--label", default=None, help="scene label (default: variant/registered)")
+    p.add_argument("--no-c", action="store_true", help="skip metaworld's C env timing")
     args = p.parse_args()
+    from benchmarks.metaworld_dynamics import make_task
+
+    label = args.label or "-".join(x for x in (args.variant, args.wrist) if x) or "registered"
     names = args.tasks or [n for n in TASKS if n in tasks.names()]
     rows = []
     for name in names:
-        task = tasks.make(name)
+        task = make_task(name, args.variant, args.wrist)
         m = task.mj_model
         rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats)
-        row = dict(task=name, batch=args.batch, scan_steps=args.steps,
+        row = dict(task=name, scene=label, batch=args.batch, scan_steps=args.steps,
                    mjx_env_steps_per_s=round(rate, 1), mjx_substeps_per_s=round(5 * rate, 1),
-                   compile_s=round(compile_s, 1), c_env_steps_per_s=round(c_rate(name), 1),
+                   compile_s=round(compile_s, 1),
+                   c_env_steps_per_s=None if args.no_c else round(c_rate(name), 1),
                    nq=m.nq, nv=m.nv, npair=m.npair, devices=str(jax.devices()[0]),
                    cpu_count=os.cpu_count(), metaworld=metaworld_version(),
                    jax=jax.__version__, mujoco=__import__("mujoco").__version__)
         print(row, flush=True)
         rows.append(row)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    existing = []
-    if os.path.exists(args.out):
-        with open(args.out) as f:
-            existing = [r for r in csv.DictReader(f)
-                        if not (r["task"] in names and r["batch"] == str(args.batch))]
-    with open(args.out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()), extrasaction="ignore")
-        w.writeheader()
-        for r in existing + rows:
-            w.writerow(r)
-    print("wrote", args.out)
+    rerun = lambda r: (r["task"] in names and r["batch"] == str(args.batch)
+                       and r.get("scene", "registered") == label)
+    write_rows(rows, Path(args.out), keep=[r for r in read_rows(Path(args.out)) if not rerun(r)])
 
 
 if __name__ == "__main__":

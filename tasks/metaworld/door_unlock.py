@@ -1,8 +1,19 @@
 """door-unlock-v3 (metaworld/envs/sawyer_door_unlock_v3.py, sawyer_door_lock.xml) on MJX.
 
-Contacts: the 4 gripper geoms x the lock lever box of `lock_link`: 4 pairs. The scripted
-policy pushes the lever round its hinge; the door (fixed in this scene) and safe are not on
-that path.
+Contacts: the 4 gripper geoms x the lock lever box of `lock_link`: 4 pairs. The door (fixed
+in this scene) and safe are not on the scripted solution's path; the arm is replaced by the
+free hand (sawyer.py). In metaworld's own scripted episodes (contact census, C MuJoCo) the
+lever is pushed by the *wrist* (4002 contact steps in 3 episodes) and swings far past its
+range ([0, 1.57]: down to -0.86). Measured and not kept: adding the wrist x lever pair (as
+in button_press/window_open) brought the first-success step from 93 to 37 (metaworld 43)
+but made the lever swing the wrong way when the wrist's box comes down on it (up to 2.54
+rad): 2 targets met instead of 3, so it was left out.
+
+Measured, `python -m benchmarks.metaworld_dynamics --tasks door_unlock` (metaworld's
+scripted policy, 20 episodes a side, 500 steps, MJX port): return 4083 vs 4433 (x0.92),
+success at step 500 100% vs 100%, lever within metaworld's own excursion (-0.12..1.76 vs
+-0.86..1.64 rad); first success at step 93 vs 43. Target missed: hand-mocap distance 0.021
+vs 0.125 m (x0.17).
 """
 from __future__ import annotations
 

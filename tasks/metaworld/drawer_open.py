@@ -1,9 +1,21 @@
 """drawer-open-v3 (metaworld/envs/sawyer_drawer_open_v3.py) on MJX.
 
-Contacts: the 4 gripper geoms x the 3 handle capsules of `drawer_link` (12 pairs). The
-scripted policy and any sensible agent only touch the handle; the drawer box, case, table
-and walls are out of the gripper's reach or never touched in metaworld's solution, so
-their contacts are dropped (the drawer still slides on its joint with its range limit).
+Contacts: the 4 gripper geoms x the 3 handle capsules of `drawer_link` (12 pairs). In
+metaworld's own scripted episodes (contact census, C MuJoCo) the claws and pads touch only the
+middle handle capsule (and the wrist, 24 steps in 3 episodes); the drawer box, case, table
+and walls are never touched, so their contacts are dropped. The drawer stops on its joint
+limit alone, which the push overpowers in metaworld too (-0.203; range [-0.16, 0]).
+The arm is replaced by the free hand (sawyer.py).
+
+Measured, `python -m benchmarks.metaworld_dynamics --tasks drawer_open` (metaworld's
+scripted policy, 20 episodes a side, 500 steps, MJX port): no target met. Return 3243 vs
+4049 (x0.80); success at step 500 0% vs 100%; drawer out to -0.262 vs -0.203 (5.9 cm past
+metaworld's, target 1 cm); hand-mocap 0.034 vs 0.086 m (x0.40). The cause is the free hand:
+metaworld's arm (joint damping, inertia) pushes the handle less hard, so the limit holds at
+-0.20 and the handle ends at the target; the free hand drives the drawer 6 cm further, past
+the success radius. With metaworld's arm kept (`arm=True`), C MuJoCo, 4 episodes: return
+x1.00, success 100%, -0.203, hand-mocap x1.00, all targets met; that scene is not usable
+under MJX yet (sawyer.py).
 """
 from __future__ import annotations
 

@@ -1,27 +1,55 @@
 """Shared pieces of the MetaWorld v3 ports: the simplified Sawyer scene, mocap actions, the
 39-D observation, and the reset/step skeleton. Checked against metaworld 3.0.0.
 
-Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`; see
-shared/reference/mjx_cpu.md for the measurements behind each choice):
-  * The 7-DOF arm, pedestal and head are deleted. MetaWorld drives the *hand* with a mocap
-    weld and never reads the arm joints, so we re-root the `hand` subtree on a free joint
-    and keep metaworld's weld (solref 0.02 1, anchor 0, identity relpose, torquescale 5).
-    The arm's 14-deep chain is what made MJX kinematics slow; the hand alone is depth 3.
-  * The free hand gets mass 1 kg / inertia 2e-3 (the arm's reflected inertia has no exact
-    equivalent) and gravity compensation on the whole gripper, so at rest it sits on the
-    mocap target (metaworld's hand rests within 5 mm of it, held up by the arm).
+Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`):
+  * The 7-DOF arm, pedestal and head are deleted (`arm=False`, the default): we re-root the
+    `hand` subtree on a free joint and keep metaworld's mocap weld (solref 0.02 1, anchor 0,
+    identity relpose, torquescale 5). The free hand gets mass 1 kg / inertia 2e-3 and
+    gravity compensation on the whole gripper, so at rest it sits on the mocap target
+    (metaworld's hand rests within 5 mm of it, held up by the arm). What this changes, in
+    C MuJoCo, metaworld's scripted policy, 3 episodes of button_press with the contacts
+    below: metaworld's arm-held hand trails the mocap by 0.21 m on average (it is blocked by
+    the button box while the mocap runs on), the free hand by 0.12 m.
+    `arm=True` keeps metaworld's arm instead: its joints with damping, armature and limits,
+    link inertias and the weld exactly as metaworld compiles them (joint-less bodies that
+    nothing reads are fused into their parents, world-fixed ones deleted). In C MuJoCo that
+    scene with the contacts below reproduces metaworld closely (button_press: hand-mocap
+    0.24 vs 0.21 m, button -0.083 vs -0.084; drawer_open all four targets met; with
+    metaworld's wrist mesh in place of the box, window_open's and button_press's scripted
+    returns equal metaworld's to 4 digits). Under MJX on this 2-core CPU it is not usable
+    yet: `jit(mjx.kinematics)` 2.2 ms, one B=1 step 6.3 ms (38 s to compile), and
+    compiling the vmapped batch-64 env step did not finish in 8 minutes (2026-12-01, with
+    another job on the second core; the free-hand button_press compiles in 28-64 s). So
+    the free hand stays the default.
   * Visual-only geoms (contype = conaffinity = 0, all meshes), meshes, textures and materials
-    are deleted; every body keeps its compiled mass and inertia (set explicitly), so the
-    dynamics of what remains are unchanged.
-  * Every geom's contype/conaffinity is zeroed and each task lists explicit contact pairs
-    between the 4 gripper geoms (claws, pads) and the object parts the gripper touches.
-    Pair parameters are computed from the two geoms as MuJoCo mixes them for dynamic
-    contacts. MJX tests every candidate pair every step; this is the main speed lever.
+    are deleted (with the arm, so are collision geoms that no pair below uses); every body
+    keeps its compiled mass and inertia (set explicitly), so the dynamics of what remains are
+    unchanged.
+  * Every geom's contype/conaffinity is zeroed and each task lists explicit contact pairs:
+    the 4 gripper geoms (claws, pads) x the object parts they touch, the *wrist* x the parts
+    it touches (metaworld's scripted solutions push the button and the window handle with
+    the wrist, i.e. the collision mesh of `right_hand`, the gripper base, and the lock lever
+    too: door_unlock measured it and left it out),
+    and object x fixture stops (button cap x box face, window pane x frame, door x safe
+    wall), chosen from a contact census of metaworld's own scripted episodes. Pair
+    parameters are computed from the two geoms as MuJoCo mixes them for dynamic contacts.
+    MJX tests every candidate pair every step; this is the main speed lever.
+  * The wrist mesh (6693 vertices) becomes a box: its vertices' bounding box in the hand's
+    axes (`wrist="box"`; `wrist=k` gives a convex mesh on k of its hull vertices). The shape
+    matters: with the arm, C MuJoCo, one button_press episode from metaworld's reset state,
+    the scripted return is 461 with metaworld's mesh (metaworld: 461), 532 with a 24-point
+    hull and 564 with the box (the fingers are squeezed less by the cap). MJX has no
+    cylinder-box collision: paired cylinders that meet a box become capsules (long ones) or
+    boxes (short, wide ones).
   * metaworld places the task object at reset by editing `model.body_pos` of one body
     (drawer, door, box, window). We do the same per environment: the placement lives in
     `info["placement"]` and `model_for(info)` swaps it into `body_pos` inside the jitted
     step, so a vmapped batch holds different placements. (A mocap body would be cheaper
     but MJX's kinematics does not carry a mocap body's pose to its child bodies.)
+
+Closed-loop dynamics parity (metaworld's scripted policy on both sides; mean return, success
+at the last step, object-joint excursion, hand-mocap distance):
+`python -m benchmarks.metaworld_dynamics` -> benchmarks/results/metaworld_dynamics.csv.
 """
 from __future__ import annotations
 
@@ -106,10 +134,63 @@ class SceneSpec:
     # visual (mesh) geoms an observation reads, e.g. the door "handle": they are deleted but
     # their compiled pose relative to their body is returned so the pose can be recomputed
     virtual_geoms: tuple = ()
+    # object geoms (same form as object_geoms) paired with the wrist: metaworld's collision
+    # mesh of `right_hand` (the gripper base), replaced by its bounding box named "wrist"
+    wrist_geoms: tuple = ()
+    # primitive geoms added to the scene for pairs (e.g. a plane for a box face that only one
+    # part can reach): (name, body, mjtGeom type name, size, pos, quat, params_like) with
+    # params_like a geom name or (body, index) whose contact parameters the new geom takes
+    fixtures: tuple = ()
 
 
-def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
-    """The simplified MuJoCo model of a metaworld scene (see module docstring)."""
+def _wrist_box(model: mujoco.MjModel, data: mujoco.MjData, g: int, body: int) -> tuple:
+    """Box around mesh geom g's vertices with the axes of the `hand` frame (the gripper's own
+    axes: fingers along y, approach along x), as (half sizes, pos, quat) in `body`'s frame."""
+    mid = model.geom_dataid[g]
+    verts = model.mesh_vert[model.mesh_vertadr[mid]:model.mesh_vertadr[mid] + model.mesh_vertnum[mid]]
+    world = data.geom_xpos[g] + verts @ data.geom_xmat[g].reshape(3, 3).T
+    hand = model.body("hand").id
+    rot_h = data.xmat[hand].reshape(3, 3)
+    local = (world - data.xpos[hand]) @ rot_h  # vertices in hand axes
+    lo, hi = local.min(0), local.max(0)
+    centre = data.xpos[hand] + rot_h @ ((lo + hi) / 2)
+    rot_b = data.xmat[body].reshape(3, 3)
+    pos = rot_b.T @ (centre - data.xpos[body])
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, (rot_b.T @ rot_h).ravel())
+    return (hi - lo) / 2, pos, quat
+
+
+def _wrist_hull_points(model, data, g, body, k):
+    """k vertices of mesh g's convex hull (farthest-point sampled), in `body`'s frame."""
+    from scipy.spatial import ConvexHull
+    mid = model.geom_dataid[g]
+    verts = model.mesh_vert[model.mesh_vertadr[mid]:model.mesh_vertadr[mid] + model.mesh_vertnum[mid]]
+    world = data.geom_xpos[g] + verts @ data.geom_xmat[g].reshape(3, 3).T
+    rot_b = data.xmat[body].reshape(3, 3)
+    local = (world - data.xpos[body]) @ rot_b
+    hull = local[ConvexHull(local).vertices]
+    centre = hull.mean(0)
+    chosen = [int(np.argmax(np.linalg.norm(hull - centre, axis=1)))]
+    dist = np.linalg.norm(hull - hull[chosen[0]], axis=1)
+    while len(chosen) < k:
+        i = int(np.argmax(dist))
+        chosen.append(i)
+        dist = np.minimum(dist, np.linalg.norm(hull - hull[i], axis=1))
+    return hull[chosen]
+
+
+def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
+                ) -> tuple[mujoco.MjModel, dict]:
+    """The simplified MuJoCo model of a metaworld scene (see module docstring).
+
+    arm=True: metaworld's arm kept with its joints, inertias and damping (only its geoms go);
+    arm=False: the hand on a free joint (arm deleted), the scene of the first ports.
+    wrist: the wrist collider that replaces metaworld's gripper-base mesh: "box" (its
+    bounding box in the hand's axes), an int k (a convex mesh on k of its hull vertices), or
+    "mesh" (the original 6693-vertex mesh, and paired cylinders stay cylinders: metaworld's
+    exact shapes for C MuJoCo diagnostics only; MJX has no cylinder-box collision and the
+    mesh is far too big for it)."""
     path = metaworld_xml_path(scene.xml)
     spec = mujoco.MjSpec.from_file(path)
     # name every geom so pairs can refer to it
@@ -117,6 +198,8 @@ def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
         if not g.name:
             g.name = f"_geom{i}"
     full = spec.compile()  # compiled reference: masses, inertias, contact parameters
+    full_data = mujoco.MjData(full)
+    mujoco.mj_kinematics(full, full_data)
     # freeze compiled inertials so deleting visual geoms leaves masses as metaworld has them
     for b in spec.bodies:
         bid = mujoco.mj_name2id(full, mujoco.mjtObj.mjOBJ_BODY, b.name) if b.name else -1
@@ -128,42 +211,70 @@ def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
         b.iquat = full.body_iquat[bid]
         b.inertia = full.body_inertia[bid]
 
-    # pairs: gripper geoms x object geoms
     def collision_geoms(body_name):
         bid = full.body(body_name).id
         return [g for g in range(full.ngeom) if full.geom_bodyid[g] == bid
                 and (full.geom_contype[g] or full.geom_conaffinity[g])]
 
-    pair_names = []
-    for body_name, index in scene.object_geoms:
-        gids = collision_geoms(body_name)
-        if index is not None:
-            gids = [gids[i] for i in index]
-        for og in gids:
-            for hg in GRIPPER_GEOMS:
-                pair_names.append((hg, full.geom(og).name))
-    for pair in scene.extra_pairs:
-        pair_names.append(tuple(
-            n if isinstance(n, str) else full.geom(collision_geoms(n[0])[n[1]]).name
-            for n in pair))
+    def resolve(ref):  # geom name, or (body, index among its collision geoms)
+        return ref if isinstance(ref, str) else full.geom(collision_geoms(ref[0])[ref[1]]).name
 
-    # re-root the hand: copy its subtree from a second spec onto a world frame, delete the arm
-    donor = mujoco.MjSpec.from_file(path)
-    for coll in (donor.meshes, donor.textures, donor.materials):  # else names clash on attach
-        for item in list(coll):
-            donor.delete(item)
-    for g in donor.geoms:
-        g.material = ""
-    spec.delete(spec.body("base"))
-    frame = spec.worldbody.add_frame(pos=list(scene.hand_init_pos), quat=list(HAND_QUAT))
-    hand = frame.attach_body(donor.body("hand"), "", "")  # (MuJoCo warns about the empty prefix)
-    hand.add_freejoint(name="hand_free")
-    hand.explicitinertial = True
-    hand.mass = HAND_MASS
-    hand.inertia = [HAND_INERTIA] * 3
-    hand.ipos = [0, 0, 0]
-    for b in [hand] + _descendants(hand):
-        b.gravcomp = 1.0  # the arm holds the gripper up in metaworld
+    def expand(entries):
+        out = []
+        for body_name, index in entries:
+            gids = collision_geoms(body_name)
+            if index is not None:
+                gids = [gids[i] for i in index]
+            out += [full.geom(g).name for g in gids]
+        return out
+
+    # where each pair geom takes its contact parameters from (a geom of the full model)
+    wrist_src = next(g for g in range(full.ngeom) if full.geom_bodyid[g] == full.body(
+        "right_hand").id and full.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
+        and full.geom_contype[g])
+    param_src = {"wrist": wrist_src}
+    for name, _, _, _, _, _, like in scene.fixtures:
+        param_src[name] = full.geom(resolve(like)).id
+
+    pair_names = []
+    for og in expand(scene.object_geoms):
+        for hg in GRIPPER_GEOMS:
+            pair_names.append((hg, og))
+    for og in expand(scene.wrist_geoms):
+        pair_names.append(("wrist", og))
+    for pair in scene.extra_pairs:
+        pair_names.append(tuple(resolve(n) for n in pair))
+
+    # the wrist collider: metaworld's gripper-base mesh -> its bounding box, on the body that
+    # carries it here (`right_hand` with the arm, else the re-rooted `hand`, rigidly the same)
+    wrist_body = "right_hand" if arm else "hand"
+    wrist_size, wrist_pos, wrist_quat = _wrist_box(full, full_data, wrist_src,
+                                                   full.body(wrist_body).id)
+
+    if not arm:
+        if wrist == "mesh":
+            raise ValueError('wrist="mesh" needs the arm (the mesh hangs on right_hand)')
+        # re-root the hand: copy its subtree from a second spec onto a world frame, delete arm
+        donor = mujoco.MjSpec.from_file(path)
+        for coll in (donor.meshes, donor.textures, donor.materials):  # else names clash
+            for item in list(coll):
+                donor.delete(item)
+        for g in donor.geoms:
+            g.material = ""
+        spec.delete(spec.body("base"))
+        frame = spec.worldbody.add_frame(pos=list(scene.hand_init_pos), quat=list(HAND_QUAT))
+        hand = frame.attach_body(donor.body("hand"), "", "")  # (MuJoCo warns: empty prefix)
+        hand.add_freejoint(name="hand_free")
+        hand.explicitinertial = True
+        hand.mass = HAND_MASS
+        hand.inertia = [HAND_INERTIA] * 3
+        hand.ipos = [0, 0, 0]
+        for b in [hand] + _descendants(hand):
+            b.gravcomp = 1.0  # the arm holds the gripper up in metaworld
+    else:
+        for name in _ARM_WORLD_FIXED:
+            spec.delete(spec.body(name))
+        _fuse_into_parents(spec, full, full_data, _ARM_LEAVES)
     for cam in list(spec.cameras):
         spec.delete(cam)
 
@@ -172,16 +283,34 @@ def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
     used = {n for p in pair_names for n in p}
     for g in list(spec.geoms):
         visual = g.type == mujoco.mjtGeom.mjGEOM_MESH or (g.contype == 0 and g.conaffinity == 0)
+        if g.name == "wrist" or (wrist == "mesh" and g.name == full.geom(wrist_src).name):
+            continue
         if g.name in used:
             if g.type == mujoco.mjtGeom.mjGEOM_MESH:
                 raise ValueError(f"geom {g.name} is a mesh; pick a primitive collision geom")
             continue
-        if visual or g.name == "floor":
+        if visual or g.name == "floor" or arm:  # with the arm: only paired geoms stay
             spec.delete(g)
+    if "wrist" in used and wrist == "mesh":
+        spec.geom(full.geom(wrist_src).name).name = "wrist"
+    elif "wrist" in used and not isinstance(wrist, str):
+        pts = _wrist_hull_points(full, full_data, wrist_src, full.body(wrist_body).id, wrist)
+        spec.add_mesh(name="wrist_hull", uservert=pts.ravel().tolist())
+        spec.body(wrist_body).add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_MESH,
+                                       meshname="wrist_hull")
+    elif "wrist" in used:
+        spec.body(wrist_body).add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_BOX,
+                                       size=list(wrist_size), pos=list(wrist_pos),
+                                       quat=list(wrist_quat))
+    for name, body, gtype, size, pos, quat, _ in scene.fixtures:
+        spec.body(body).add_geom(name=name, type=getattr(mujoco.mjtGeom, f"mjGEOM_{gtype}"),
+                                 size=list(size), pos=list(pos), quat=list(quat))
     for g in spec.geoms:
         g.contype, g.conaffinity = 0, 0  # only the explicit pairs below collide
     for coll in (spec.meshes, spec.textures, spec.materials):
         for item in list(coll):
+            if item.name in {"mesh": ("eGripperBase",), "box": ()}.get(wrist, ("wrist_hull",)):
+                continue  # the mesh the wrist geom uses
             spec.delete(item)
     for g in spec.geoms:
         g.material = ""
@@ -189,25 +318,92 @@ def build_scene(scene: SceneSpec) -> tuple[mujoco.MjModel, dict]:
     # MJX has no cylinder-box collision: a paired object cylinder becomes a capsule of the
     # same radius and end-to-end length (long cylinders: handle rods), or a box with the
     # cylinder's bounding extents (short, wide ones: the button cap, which a capsule would
-    # lengthen by its radius towards the gripper)
-    paired_objects = {n2 for _, n2 in pair_names}
+    # lengthen by its radius towards the gripper) -- unless every partner is a plane,
+    # a sphere, a capsule or a cylinder, which MJX collides with cylinders exactly
+    kinds = {g.name: g.type for g in spec.geoms}
+    exact = {mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_SPHERE,
+             mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER}
     for g in spec.geoms:
-        if g.name in paired_objects and g.type == mujoco.mjtGeom.mjGEOM_CYLINDER:
-            r, hl = g.size[0], g.size[1]
-            if hl > r:
-                g.type, g.size = mujoco.mjtGeom.mjGEOM_CAPSULE, [r, hl - r, 0]
-            else:
-                g.type, g.size = mujoco.mjtGeom.mjGEOM_BOX, [r, r, hl]
+        if g.type != mujoco.mjtGeom.mjGEOM_CYLINDER or g.name not in used or wrist == "mesh":
+            continue
+        partners = [b if a == g.name else a for a, b in pair_names if g.name in (a, b)]
+        if all(kinds[p] in exact for p in partners):
+            continue
+        r, hl = g.size[0], g.size[1]
+        if hl > r:
+            g.type, g.size = mujoco.mjtGeom.mjGEOM_CAPSULE, [r, hl - r, 0]
+        else:
+            g.type, g.size = mujoco.mjtGeom.mjGEOM_BOX, [r, r, hl]
 
     for n1, n2 in pair_names:
-        params = _mix_pair_params(full, full.geom(n1).id, full.geom(n2).id)
-        spec.add_pair(geomname1=n1, geomname2=n2, **params)
+        i1 = param_src.get(n1, None)
+        i2 = param_src.get(n2, None)
+        i1 = full.geom(n1).id if i1 is None else i1
+        i2 = full.geom(n2).id if i2 is None else i2
+        spec.add_pair(geomname1=n1, geomname2=n2, **_mix_pair_params(full, i1, i2))
 
     model = spec.compile()
     for i in range(model.neq):
         if model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
             model.eq_data[i, : WELD_ROW.size] = WELD_ROW
     return model, {"npairs": len(pair_names), "virtual_geoms": virtual}
+
+
+# bodies of metaworld's Sawyer base that carry no joint and that nothing here reads: fused
+# into their parent (mass and inertia combined exactly) or, when fixed to the world, deleted.
+# Fewer bodies per tree level means fewer groups in MJX's per-level tree scans.
+_ARM_WORLD_FIXED = ("controller_box", "pedestal_feet", "torso", "pedestal")
+_ARM_LEAVES = ("head", "right_torso_itb", "right_arm_itb", "right_hand_camera", "right_wrist",
+               "right_l4_2", "right_l2_2", "right_l1_2")
+
+
+def _fuse_into_parents(spec, full: mujoco.MjModel, full_data: mujoco.MjData, names) -> None:
+    """Deletes the bodies `names` (and their subtrees) after adding their masses and inertias
+    to their parents; the subtrees must have no joints (they move rigidly with the parent)."""
+    by_parent = {}
+    for name in names:
+        by_parent.setdefault(int(full.body_parentid[full.body(name).id]), []).append(name)
+    for pid, group in by_parent.items():
+        _fuse(spec, full, full_data, pid, [full.body(n).id for n in group])
+        for name in group:
+            spec.delete(spec.body(name))
+
+
+def _fuse(spec, full, full_data, pid: int, leaves: list) -> None:
+    for leaf in leaves:
+        assert not any(full.body_jntnum[b] for b in range(full.nbody)
+                       if _is_in_subtree(full, b, leaf)), full.body(leaf).name
+    members = [pid] + [b for b in range(full.nbody)
+                       if any(_is_in_subtree(full, b, leaf) for leaf in leaves)]
+    mass = sum(full.body_mass[b] for b in members)
+    com = sum(full.body_mass[b] * full_data.xipos[b] for b in members) / max(mass, 1e-12)
+    tensor = np.zeros((3, 3))
+    for b in members:
+        rot = full_data.ximat[b].reshape(3, 3)
+        d = full_data.xipos[b] - com
+        tensor += rot @ np.diag(full.body_inertia[b]) @ rot.T
+        tensor += full.body_mass[b] * (d @ d * np.eye(3) - np.outer(d, d))
+    rot_p = full_data.xmat[pid].reshape(3, 3)
+    local = rot_p.T @ tensor @ rot_p
+    vals, vecs = np.linalg.eigh(local)
+    if np.linalg.det(vecs) < 0:
+        vecs[:, 0] = -vecs[:, 0]
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, vecs.ravel())
+    parent = spec.body(full.body(pid).name)
+    parent.explicitinertial = True
+    parent.mass = mass
+    parent.ipos = rot_p.T @ (com - full_data.xpos[pid])
+    parent.iquat = quat
+    parent.inertia = np.maximum(vals, 1e-12)
+
+
+def _is_in_subtree(model: mujoco.MjModel, body: int, root: int) -> bool:
+    while body > 0:
+        if body == root:
+            return True
+        body = int(model.body_parentid[body])
+    return False
 
 
 def _descendants(body) -> list:
@@ -243,7 +439,7 @@ class SawyerTask(Task):
     goal_high: tuple | None = None
 
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
-                 ls_iterations: int = 10):
+                 ls_iterations: int = 10, arm: bool = False, wrist: str | int = "box"):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
         That is metaworld v3's own default (`_partially_observable = True`) and what BPref
@@ -256,7 +452,8 @@ class SawyerTask(Task):
         5 / 10 roughly doubled batch-64 throughput on drawer_open and kept its scripted-policy
         success and drift (benchmarks/metaworld_parity.py). Pass 50, 50 for metaworld's."""
         self.partially_observable = partially_observable
-        self.mj_model, self.scene_info = build_scene(self.scene)
+        self.arm = arm
+        self.mj_model, self.scene_info = build_scene(self.scene, arm=arm, wrist=wrist)
         self.mj_model.opt.iterations = solver_iterations
         self.mj_model.opt.ls_iterations = ls_iterations
         self.model = put_model(self.mj_model)
@@ -266,8 +463,9 @@ class SawyerTask(Task):
         self._mocap_high = jnp.asarray(self.hand_high, jnp.float32)
         self._hand_mocap = int(m.body_mocapid[m.body("mocap").id])
         self._placed_body = m.body(self.scene.placed_body).id if self.scene.placed_body else None
-        self._hand_qadr = int(m.jnt_qposadr[m.joint("hand_free").id])
-        self._hand_vadr = int(m.jnt_dofadr[m.joint("hand_free").id])
+        if not arm:
+            self._hand_qadr = int(m.jnt_qposadr[m.joint("hand_free").id])
+            self._hand_vadr = int(m.jnt_dofadr[m.joint("hand_free").id])
         self._ids = {
             "hand": m.body("hand").id, "rightclaw": m.body("rightclaw").id,
             "leftclaw": m.body("leftclaw").id, "rightpad": m.body("rightpad").id,
@@ -429,16 +627,18 @@ class SawyerTask(Task):
         m = self.mj_model
         qpos = np.zeros(m.nq)
         qvel = np.zeros(m.nv)
-        qpos[self._hand_qadr:self._hand_qadr + 3] = md.body("hand").xpos
-        qpos[self._hand_qadr + 3:self._hand_qadr + 7] = md.body("hand").xquat
-        qvel[self._hand_vadr:self._hand_vadr + 3] = md.body("hand").cvel[3:]  # approx.
-        # fingers by name; the task object's joints (some unnamed) in their model order
-        fingers = ["r_close", "l_close"]
-        ours = [m.joint(f).id for f in fingers] + [
-            j for j in range(m.njnt) if m.joint(j).name not in fingers + ["hand_free"]]
-        theirs = [mm.joint(f).id for f in fingers] + [
-            j for j in range(mm.njnt)
-            if mm.joint(j).name not in fingers and not mm.joint(j).name.startswith("right_j")]
+        # named joints (fingers, arm) by name; the task object's joints (some unnamed) in
+        # their model order; without the arm, the hand pose from metaworld's hand body
+        named = [m.joint(j).name for j in range(m.njnt)
+                 if m.joint(j).name and m.joint(j).name != "hand_free"]
+        ours = [m.joint(n).id for n in named] + [
+            j for j in range(m.njnt) if not m.joint(j).name]
+        theirs = [mm.joint(n).id for n in named] + [
+            j for j in range(mm.njnt) if not mm.joint(j).name]
+        if not self.arm:
+            qpos[self._hand_qadr:self._hand_qadr + 3] = md.body("hand").xpos
+            qpos[self._hand_qadr + 3:self._hand_qadr + 7] = md.body("hand").xquat
+            qvel[self._hand_vadr:self._hand_vadr + 3] = md.body("hand").cvel[3:]  # approx.
         assert len(ours) == len(theirs), "joint lists of port and metaworld differ"
         for j, jm in zip(ours, theirs):
             mj = mm.joint(jm)
