@@ -52,10 +52,12 @@ TINY_WM = WorldModelConfig(obs_size=4, act_size=2, latent_dim=4, obs_hidden=(16,
 
 def tiny(**kw) -> LabConfig:
     known = rules()
-    base = dict(rules=tuple(ALL), credits=tuple(known[r] for r in ALL), lam=50.0,
+    base = dict(rules=tuple(ALL), credits=tuple(known[r] for r in ALL), lam=5.0,
                 budgets=(20, 50), queries_per_round=10, seeds=(0, 1),
                 reward=RewardConfig(hidden_sizes=(32, 32), ensemble_size=3),
-                preference=PreferenceConfig(max_epochs=100, lr=1e-3),
+                # 16-row minibatches: one round program per lab (the lab picks the smallest
+                # of 16/32/64/... that holds the labels, at most this)
+                preference=PreferenceConfig(max_epochs=100, lr=1e-3, batch_size=16),
                 world_model=TINY_WM, wm_pretrain_steps=5, wm_steps=5, profile_segments=16)
     return LabConfig(**{**base, **kw})
 
@@ -131,14 +133,11 @@ def test_one_seed_equals_its_slot_in_the_vmapped_batch(data, disagreement):
     for row in alone:
         slot = batch[(row["seed"], row["rule"], row["budget"])]
         assert row["labels"] == slot["labels"] and row["epochs"] == slot["epochs"]
-        # equal up to the rounding of a vmapped program: far closer than the other seed's
-        # reward under the same rule. The vmapped world model differs by ~1e-7, which 500
-        # epochs at λ = 50 grow to ~0.04 for the attention rules by the second budget, so
-        # those are compared at the first.
-        if row["budget"] == 20 or row["rule"] in ("pebble", "rvar", "oracle"):
-            other_seed = batch[(0, row["rule"], row["budget"])]
-            assert gap(row, slot) < 1e-3, row["rule"]
-            assert gap(row, slot) < 0.01 * gap(row, other_seed), row["rule"]
+        # equal up to the rounding of a vmapped program (measured: <= 1e-5), far closer than
+        # the other seed's reward under the same rule (~0.1). At λ = 50 the same rounding
+        # grew to 0.05 for some rules over the two budgets: training that hot is chaotic.
+        other_seed = gap(row, batch[(0, row["rule"], row["budget"])])
+        assert gap(row, slot) < 1e-4 and gap(row, slot) < 1e-3 * other_seed, row["rule"]
 
 
 def test_true_reward_reaches_only_the_teacher_and_the_oracle(data, disagreement):
@@ -194,3 +193,33 @@ def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, cap
     assert data.train_reward.shape == (7, 20) and data.test_reward.shape == (3, 20)
     assert cli.main(argv[:-2] + ["--dataset-only"]) == 0
     assert "dataset" in capsys.readouterr().out and len(list(cached[0].parent.iterdir())) == 1
+
+
+def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
+    """The lab trains with a 16/32/64-row minibatch while the labels fit in it: the epoch is
+    the same single minibatch of the real pairs, only with less padding."""
+    import jax
+
+    from hprior_jax.buffers import preferences
+    from hprior_jax.lab.learn import minibatch_size
+    from hprior_jax.networks.reward_ensemble import init_reward_ensemble
+    from hprior_jax.pbrl.preference import make_optimizer, train_reward
+
+    assert [minibatch_size(n, 128) for n in (1, 16, 17, 25, 64, 65, 128, 400)] == [
+        16, 16, 32, 32, 64, 128, 128, 128]
+    rng = np.random.default_rng(0)
+    store = preferences.init(T, 4, 2, capacity=100)
+    batch = preferences.PreferenceBatch(*(rng.normal(size=(25, T, d)).astype(np.float32)
+                                          for d in (4, 2, 4, 2)), labels=rng.integers(0, 2, 25))
+    store = preferences.add(store, batch, np.ones(25, bool))
+    reward_cfg = RewardConfig(hidden_sizes=(32, 32), ensemble_size=3)
+    params = init_reward_ensemble(jax.random.PRNGKey(0), 4, 2, reward_cfg)
+    out = {}
+    for size in (32, 128):
+        cfg = PreferenceConfig(batch_size=size, max_epochs=5, lr=1e-3)
+        tx = make_optimizer(cfg)
+        out[size], _, m = train_reward(params, tx.init(params), store, jax.random.PRNGKey(1),
+                                       tx=tx, reward_cfg=reward_cfg, cfg=cfg)
+        assert int(m["reward/epochs"]) == 5
+    for a, b in zip(jax.tree.leaves(out[32]), jax.tree.leaves(out[128])):
+        np.testing.assert_allclose(a, b, atol=1e-6)

@@ -151,7 +151,7 @@ class Lab:
         self.mean_return = jnp.float32(d.train_reward.sum(1).mean())
         self.seconds: dict[str, float] = {}
         self.compile_seconds: dict[str, float] = {}
-        self.adam_steps = 0  # reward-ensemble minibatch steps run (the sweep's cost)
+        self.adam_steps = 0  # reward-ensemble minibatch steps run, of any minibatch size
 
     # -- per seed -----------------------------------------------------------------------
     def seed_context(self, key: jax.Array, train: Episodes) -> SeedContext:
@@ -199,7 +199,7 @@ class Lab:
         return jnp.stack([options[c] for c in CREDITS])[credit_id]
 
     def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, num_queries, first,
-              train: Episodes, mean_return, *, queries: int):
+              train: Episodes, mean_return, *, queries: int, batch_size: int):
         """Query -> teacher -> credit of the new pairs -> reward update on every stored pair.
         The first round's queries are uniform (as in BPref), later ones `feed_type`: both are
         drawn and `first` (traced) picks, so every round runs one compiled program."""
@@ -225,7 +225,9 @@ class Lab:
         prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
         params, opt, m = train_reward(cell.reward, cell.opt, prefs, k_train, tx=self.tx,
-                                      reward_cfg=cfg.reward, cfg=cfg.preference,
+                                      reward_cfg=cfg.reward,
+                                      cfg=dataclasses.replace(cfg.preference,
+                                                              batch_size=batch_size),
                                       terms=(prior_term(lam, credit, "raw"),))
         metrics = {"labels": prefs.count, "epochs": m["reward/epochs"],
                    "train_acc": m["reward/train_acc"], "ce": m["reward/loss"],
@@ -273,7 +275,7 @@ class Lab:
         ctx = self._timed("world_model", seed_context, keys, self.train)
         # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
         over_cells = lambda fn, seed_axes, rule_axes: jax.vmap(jax.vmap(fn, rule_axes), seed_axes)
-        rounds_fn = lambda q: over_cells(partial(self.round, queries=q),
+        rounds_fn = lambda q, b: over_cells(partial(self.round, queries=q, batch_size=b),
                                          (0, 0, None, None) + (None,) * 4,
                                          (0, None, 0, 0) + (None,) * 4)
         predict_fn = over_cells(self.predict, (0, None), (0, None))
@@ -286,13 +288,16 @@ class Lab:
             capacity = rounds[-1][1]
             cells = self.init_cells(keys, capacity)
             queries = capacity if cfg.one_shot else cfg.queries_per_round
+            rounds_labels = np.cumsum([n for n, _ in rounds])  # labels stored after each
             for i, (n, budget) in enumerate(rounds):
                 args = (cells, ctx, self.credit_index, self.lams, jnp.int32(n),
                         jnp.asarray(i == 0), self.train, self.mean_return)
-                fn = self._compiled(f"round/{queries}", rounds_fn(queries), *args, donate=0)
+                batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
+                fn = self._compiled(f"round/{queries}/batch{batch}", rounds_fn(queries, batch),
+                                    *args, donate=0)
                 cells, m = self._timed("rounds", fn, *args)  # the old cells are donated
                 m = jax.device_get(m)
-                batches = -(-int(np.max(m["labels"])) // cfg.preference.batch_size)
+                batches = -(-int(np.max(m["labels"])) // batch)
                 # vmapped, a round runs until its slowest cell stops: that is what it costs
                 self.adam_steps += int(np.max(m["epochs"])) * batches
                 if budget is None:
@@ -308,6 +313,17 @@ class Lab:
                          f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
         return rows
+
+
+def minibatch_size(labels: int, batch_size: int) -> int:
+    """The smallest of 16, 32, 64, ... >= `labels`, at most `batch_size`. While every stored
+    pair fits in one minibatch, an epoch is that one minibatch whatever its padding (padded
+    rows are masked), so a smaller static batch computes the same update for less: at 25
+    labels a 32-row batch costs a quarter of a 128-row one."""
+    size = 16
+    while size < min(labels, batch_size):
+        size *= 2
+    return min(size, batch_size)
 
 
 # LabConfig fields that reach the programs as arguments or only the host schedule
