@@ -125,9 +125,15 @@ def disagreement(data):
     return cfg, Lab(cfg, data).run(**quiet)
 
 
-def test_one_seed_equals_its_slot_in_the_vmapped_batch(data, disagreement):
-    cfg, rows = disagreement
-    alone = Lab(dataclasses.replace(cfg, seeds=(1,)), data).run(**quiet)
+@pytest.fixture(scope="module")
+def seed_one_alone(data, disagreement):
+    cfg = dataclasses.replace(disagreement[0], seeds=(1,))
+    return cfg, Lab(cfg, data).run(**quiet)
+
+
+def test_one_seed_equals_its_slot_in_the_vmapped_batch(disagreement, seed_one_alone):
+    _, rows = disagreement
+    _, alone = seed_one_alone
     batch = by_cell(rows)
     gap = lambda a, b: float(np.abs(a["prediction"] - b["prediction"]).mean())
     for row in alone:
@@ -140,13 +146,12 @@ def test_one_seed_equals_its_slot_in_the_vmapped_batch(data, disagreement):
         assert gap(row, slot) < 1e-4 and gap(row, slot) < 1e-3 * other_seed, row["rule"]
 
 
-def test_true_reward_reaches_only_the_teacher_and_the_oracle(data, disagreement):
+def test_true_reward_reaches_only_the_teacher_and_the_oracle(data, seed_one_alone):
     """Doubling every true reward leaves the oracle teacher's labels and the oracle credit
     unchanged, so every rule must learn exactly the same reward; a learner that read true
     rewards (regressed on them, normalised by them) would not."""
-    cfg = dataclasses.replace(disagreement[0], seeds=(1,))
-    scaled = dataclasses.replace(data, train_reward=2 * data.train_reward)
-    a, b = Lab(cfg, data).run(**quiet), Lab(cfg, scaled).run(**quiet)
+    cfg, a = seed_one_alone
+    b = Lab(cfg, dataclasses.replace(data, train_reward=2 * data.train_reward)).run(**quiet)
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x["prediction"], y["prediction"])
 
