@@ -228,3 +228,11 @@ def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
         assert int(m["reward/epochs"]) == 5
     for a, b in zip(jax.tree.leaves(out[32]), jax.tree.leaves(out[128])):
         np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_one_shot_trains_each_budget_afresh_on_all_its_labels(data):
+    cfg = tiny(rules=("pebble",), credits=("none",), seeds=(0,), budgets=(10, 20),
+               one_shot=True, world_model=None)
+    rows = Lab(cfg, data).run(**quiet)
+    assert [(r["budget"], r["labels"]) for r in rows] == [(10, 10), (20, 20)]
+    assert all(r["epochs"] >= 1 for r in rows)

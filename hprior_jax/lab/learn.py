@@ -199,9 +199,9 @@ class Lab:
         return jnp.stack([options[c] for c in CREDITS])[credit_id]
 
     def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, num_queries, first,
-              train: Episodes, mean_return, *, queries: int, batch_size: int):
+              train: Episodes, mean_return, *, queries: int, batch_size: int, feed: str):
         """Query -> teacher -> credit of the new pairs -> reward update on every stored pair.
-        The first round's queries are uniform (as in BPref), later ones `feed_type`: both are
+        The first round's queries are uniform (as in BPref), later ones `feed`: both are
         drawn and `first` (traced) picks, so every round runs one compiled program."""
         cfg = self.cfg
         key, k_query, k_teacher, k_train = jax.random.split(cell.key, 4)
@@ -210,8 +210,8 @@ class Lab:
             jnp.int32(train.obs.shape[0]), rule=rule, mb_size=queries, segment_len=self.T,
             large_batch=cfg.large_batch, num_queries=num_queries, reward_cfg=cfg.reward)
         pairs = select("uniform")
-        if cfg.feed_type != "uniform":
-            pairs = jax.tree.map(partial(jnp.where, first), pairs, select(cfg.feed_type))
+        if feed != "uniform":
+            pairs = jax.tree.map(partial(jnp.where, first), pairs, select(feed))
         thresholds = compute_thresholds(cfg.teacher, mean_return, self.T,
                                         self.data.episode_length, first_round=first)
         out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, cfg.teacher, thresholds)
@@ -275,7 +275,10 @@ class Lab:
         ctx = self._timed("world_model", seed_context, keys, self.train)
         # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
         over_cells = lambda fn, seed_axes, rule_axes: jax.vmap(jax.vmap(fn, rule_axes), seed_axes)
-        rounds_fn = lambda q, b: over_cells(partial(self.round, queries=q, batch_size=b),
+        # one-shot runs have only a first round: no candidate pool for the uncertainty rules
+        feed = "uniform" if cfg.one_shot else cfg.feed_type
+        rounds_fn = lambda q, b: over_cells(partial(self.round, queries=q, batch_size=b,
+                                                    feed=feed),
                                          (0, 0, None, None) + (None,) * 4,
                                          (0, None, 0, 0) + (None,) * 4)
         predict_fn = over_cells(self.predict, (0, None), (0, None))
@@ -327,5 +330,5 @@ def minibatch_size(labels: int, batch_size: int) -> int:
 
 
 # LabConfig fields that reach the programs as arguments or only the host schedule
-_ARGUMENTS = ("rules", "credits", "lam", "seeds", "budgets", "one_shot")
+_ARGUMENTS = ("rules", "credits", "lam", "seeds", "budgets")
 _PROGRAMS: dict = {}  # compiled lab programs of this process (see Lab._compiled)
