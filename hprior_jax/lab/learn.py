@@ -47,7 +47,7 @@ from hprior_jax.pbrl.query import select_queries
 from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
-from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term
+from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle")
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
@@ -184,7 +184,7 @@ class Lab:
     # -- per cell -----------------------------------------------------------------------
     def credit(self, ctx: SeedContext, credit_id, obs, act, true_r) -> jax.Array:
         """α[B, T] of segments under the rule `credit_id` (an index into CREDITS)."""
-        uniform = jnp.full(true_r.shape, 1.0 / self.T)
+        uniform = rvar_alpha(true_r)  # 1/T at every step (RVAR's credit)
         if ctx.wm_params is None:
             attention = uniform
         else:
