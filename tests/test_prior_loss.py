@@ -64,7 +64,7 @@ def test_pair_prior_loss_is_prior_loss_on_both_segments():
     np.testing.assert_allclose(got, ref, rtol=1e-5)
     term = L.prior_term(7.0, None)
     value = term.loss(jnp.asarray(r1), jnp.asarray(r2), PairCredit(jnp.asarray(a1), jnp.asarray(a2)),
-                      jnp.asarray(mask))
+                      jnp.asarray(mask), None)  # the prior reads no network parameters
     np.testing.assert_allclose(value, ref, rtol=1e-5)  # the term is unweighted; λ is its weight
     assert term.weight == 7.0 and term.name == "prior/loss"
 

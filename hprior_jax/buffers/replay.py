@@ -53,7 +53,14 @@ def add(buf: ReplayState, obs, action, reward, next_obs, not_done, true_reward,
 
 def sample(buf: ReplayState, key: jax.Array, batch_size: int) -> Batch:
     """Uniform with replacement over the valid transitions."""
-    idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
+    return gather(buf, sample_indices(buf, key, batch_size))
+
+
+def sample_indices(buf: ReplayState, key: jax.Array, batch_size: int) -> jax.Array:
+    return jax.random.randint(key, (batch_size,), 0, jnp.maximum(buf.size, 1))
+
+
+def gather(buf: ReplayState, idx: jax.Array) -> Batch:
     return Batch(obs=buf.obs[idx], action=buf.action[idx], reward=buf.reward[idx],
                  next_obs=buf.next_obs[idx], not_done=buf.not_done[idx])
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -107,6 +107,16 @@ class PebbleState:
     ext: Any = None  # the state of an `Extension` (PRIOR: world model, credit, λ)
 
 
+class EpisodeWindow(NamedTuple):
+    """The episodes queries are drawn from: obs[N, L, ds], act[N, L, da], true_reward[N, L]
+    (teacher only), and `count` valid rows (rows 0..count-1)."""
+
+    obs: jax.Array
+    act: jax.Array
+    true_reward: jax.Array
+    count: jax.Array
+
+
 class Extension:
     """What a method built on PEBBLE adds to it (PRIOR, RVAR): its own state (`ms.ext`), its
     own host-side events, reward terms beside the preference cross-entropy (with the run
@@ -129,10 +139,16 @@ class Extension:
         (e.g. PRIOR's credit of the stored pairs)."""
         return (), ms
 
+    agent_metrics: tuple[str, ...] = ()  # the `train/` metrics `agent_reward` returns
+
     def agent_reward(self, rs: RunState, batch, t: jax.Array):
         """The reward of a sampled batch in SAC's update after pre-training at global step
         `t`: (reward [B], rs, metrics). PEBBLE: the relabelled r̂ stored in the buffer."""
         return batch.reward, rs, {}
+
+    def reward_config(self, base: RewardConfig) -> RewardConfig:
+        """The reward ensemble's architecture (BISIM adds a next-embedding head)."""
+        return base
 
     def round_metrics(self, ms: PebbleState, reward_cfg: RewardConfig) -> dict:
         """Scalar diagnostics after the round's reward update (inside the compiled round)."""
@@ -145,8 +161,9 @@ class Pebble(Method):
         self.ext = extension or Extension()
         p = self.pcfg = cfg.pebble
         L = kit.env.episode_length
-        if p.segment_len >= L:
-            raise ValueError(f"--pebble.segment-len {p.segment_len} must be shorter than the "
+        if self.stored_segment_len >= L:
+            raise ValueError(f"stored segments of {self.stored_segment_len} steps "
+                             f"(--pebble.segment-len {p.segment_len}) must be shorter than the "
                              f"episode ({L} steps) of {cfg.task}")
         if cfg.capacity % L or cfg.capacity < cfg.steps:
             raise ValueError(f"PbRL reads episodes straight from the replay buffer, so it must "
@@ -156,11 +173,15 @@ class Pebble(Method):
             raise ValueError(f"no feedback round fits: the first comes at step "
                              f"{self.first_round_step} (seed + unsup steps) but --steps is "
                              f"{cfg.steps}; train longer or shorten pre-training")
-        self.reward_cfg = RewardConfig(hidden_sizes=(p.reward_hidden,) * p.reward_depth,
-                                       ensemble_size=p.ensemble_size)
+        self.reward_cfg = self.ext.reward_config(reward_config(p))
         self.pref_cfg = PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
                                          lr=p.reward_lr)
         self.reward_tx = make_optimizer(self.pref_cfg)
+
+    @property
+    def stored_segment_len(self) -> int:
+        """Steps of a stored (queried) segment: the teacher's H, longer for SURF's crops."""
+        return self.pcfg.segment_len
 
     # -- schedule --------------------------------------------------------------------------
     @property
@@ -174,7 +195,8 @@ class Pebble(Method):
                       sac_step(kit, reward_fn=self._intrinsic_reward),
                       SAC_METRICS + ("train/intrinsic_reward",)),
                 Phase(SAC_PHASE, self.first_round_step,
-                      sac_step(kit, reward_fn=self.ext.agent_reward), SAC_METRICS))
+                      sac_step(kit, reward_fn=self.ext.agent_reward),
+                      SAC_METRICS + self.ext.agent_metrics))
 
     def rounds(self) -> list[tuple[int, int]]:
         """(step, queries) of every feedback round: the last is clipped to the budget."""
@@ -196,7 +218,7 @@ class Pebble(Method):
         params = init_reward_ensemble(key, env.obs_size, env.action_size, self.reward_cfg)
         return PebbleState(
             reward=params, reward_opt=self.reward_tx.init(params),
-            prefs=preferences.init(p.segment_len, env.obs_size, env.action_size,
+            prefs=preferences.init(self.stored_segment_len, env.obs_size, env.action_size,
                                    capacity=p.max_feedback),
             entropy_stats=init_running_mean_std(), ext=self.ext.init(key))
 
@@ -219,37 +241,32 @@ class Pebble(Method):
         p, L = self.pcfg, self.kit.env.episode_length
         buf, ms = rs.replay, rs.method
         key, k_query, k_teacher, k_reward, k_reset = jax.random.split(rs.key, 5)
-
-        # the last `trajectory_episodes` complete episodes, straight from the replay buffer
-        n_stored = buf.capacity // L
-        window = min(p.trajectory_episodes, n_stored)
-        n_episodes = buf.size // L
-        start = jnp.maximum(n_episodes - window, 0)
-        episodes = lambda x: jax.lax.dynamic_slice_in_dim(
-            x.reshape((n_stored, L) + x.shape[1:]), start, window, axis=0)
-        ep_obs, ep_act, ep_true = episodes(buf.obs), episodes(buf.action), episodes(buf.true_reward)
-        count = jnp.minimum(n_episodes, window)
-
-        pairs = select_queries(k_query, ms.reward, ep_obs, ep_act, ep_true, count,
-                               rule="uniform" if first else p.feed_type, mb_size=queries,
-                               segment_len=p.segment_len, large_batch=p.large_batch,
-                               num_queries=num_queries, reward_cfg=self.reward_cfg)
-        returns = ep_true.sum(-1)
-        recent = (jnp.arange(window) < count) & (jnp.arange(window) >= count - RETURN_WINDOW)
+        window = self.recent_episodes(buf)
+        pairs = select_queries(k_query, ms.reward, window.obs, window.act, window.true_reward,
+                               window.count, rule="uniform" if first else p.feed_type,
+                               mb_size=queries, segment_len=self.stored_segment_len,
+                               large_batch=p.large_batch, num_queries=num_queries,
+                               reward_cfg=self.reward_cfg)
+        returns = window.true_reward.sum(-1)
+        n = window.true_reward.shape[0]
+        recent = (jnp.arange(n) < window.count) & (jnp.arange(n) >= window.count - RETURN_WINDOW)
         mean_return = jnp.sum(returns * recent) / jnp.maximum(recent.sum(), 1)
         thresholds = compute_thresholds(p.teacher, mean_return, p.segment_len, L,
                                         first_round=first)
-        out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, p.teacher, thresholds)
+        out = teacher_labels(k_teacher, *self.teacher_rewards(pairs), p.teacher, thresholds)
         keep = out.valid & pairs.mask
         prefs = preferences.add(ms.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
-        ms, rmetrics = self._train_reward(rs, ms.replace(prefs=prefs), k_reward)
+        # a stream folded off the query key: PEBBLE's own draws stay what they were
+        ms = self.after_labels(ms.replace(prefs=prefs), window, num_queries,
+                               jax.random.fold_in(k_query, 1))
+        ms, rmetrics = self._train_reward(rs, ms, k_reward)
         reward = relabel_rewards(ms.reward, buf.obs, buf.action, buf.reward, buf.size,
                                  reward_cfg=self.reward_cfg)
         buf = buf.replace(reward=reward)
-        sac = rs.sac
+        rs = rs.replace(replay=buf, method=ms, key=key)
         if first:
-            sac = self._reset_critic_and_update(sac, buf, k_reset)
+            rs = rs.replace(sac=self._reset_critic_and_update(rs, k_reset))
         metrics = {
             "feedback/queries": num_queries.astype(jnp.float32),
             "feedback/labeled": jnp.sum(keep).astype(jnp.float32),
@@ -260,7 +277,30 @@ class Pebble(Method):
             "reward/true_corr": masked_correlation(reward, buf.true_reward, buf.size),
             **rmetrics,
         }
-        return rs.replace(sac=sac, replay=buf, method=ms, key=key), metrics
+        return rs, metrics
+
+    def recent_episodes(self, buf) -> EpisodeWindow:
+        """The last `trajectory_episodes` complete episodes, straight from the replay buffer
+        (which holds whole episodes in order from row 0)."""
+        L = self.kit.env.episode_length
+        n_stored = buf.capacity // L
+        window = min(self.pcfg.trajectory_episodes, n_stored)
+        n_episodes = buf.size // L
+        start = jnp.maximum(n_episodes - window, 0)
+        episodes = lambda x: jax.lax.dynamic_slice_in_dim(
+            x.reshape((n_stored, L) + x.shape[1:]), start, window, axis=0)
+        return EpisodeWindow(episodes(buf.obs), episodes(buf.action), episodes(buf.true_reward),
+                             jnp.minimum(n_episodes, window))
+
+    def teacher_rewards(self, pairs) -> tuple[jax.Array, jax.Array]:
+        """The true per-step rewards the teacher judges each segment of a pair by."""
+        return pairs.true_r1, pairs.true_r2
+
+    def after_labels(self, ms: PebbleState, window: EpisodeWindow, num_queries: jax.Array,
+                     key: jax.Array) -> PebbleState:
+        """After the round's labels are stored, before the reward update (SURF draws its
+        unlabelled pairs here). PEBBLE: nothing."""
+        return ms
 
     def _train_reward(self, rs: RunState, ms: PebbleState, key: jax.Array):
         """The reward-ensemble update of a round on every stored pair (`ms.prefs`), with the
@@ -275,15 +315,18 @@ class Pebble(Method):
              if k != "reward/train_acc_member"}
         return ms, {**m, **self.ext.round_metrics(ms, self.reward_cfg)}
 
-    def _reset_critic_and_update(self, sac_state, buf, key):
-        """BPref `reset_critic` + `update_after_reset`: target EMA when index % 2 == 0."""
+    def _reset_critic_and_update(self, rs: RunState, key):
+        """BPref `reset_critic` + `update_after_reset`: target EMA when index % 2 == 0. The
+        agent's reward is the extension's, at the global step of the first round (RUNE's β)."""
         k_init, k_updates = jax.random.split(key)
-        sac_state = self.kit.sac.reset_critic(sac_state, k_init)
+        sac_state = self.kit.sac.reset_critic(rs.sac, k_init)
+        step = jnp.asarray(self.first_round_step, jnp.int32)
 
         def body(state, i):
             k_sample, k_update = jax.random.split(jax.random.fold_in(k_updates, i))
-            batch = replay.sample(buf, k_sample, self.kit.sac.cfg.batch_size)
-            return self.kit.sac.update(state, batch, k_update, i)[0], None
+            batch = replay.sample(rs.replay, k_sample, self.kit.sac.cfg.batch_size)
+            reward, _, _ = self.ext.agent_reward(rs, batch, step)
+            return self.kit.sac.update(state, batch._replace(reward=reward), k_update, i)[0], None
 
         return jax.lax.scan(body, sac_state, jnp.arange(self.pcfg.reset_update))[0]
 
@@ -303,6 +346,11 @@ class Pebble(Method):
             rs, round_metrics = self.kit.compile(name, fn, rs, n)(rs, n)
             metrics = {**metrics, **round_metrics}
         return rs, metrics
+
+
+def reward_config(p: PebbleConfig) -> RewardConfig:
+    return RewardConfig(hidden_sizes=(p.reward_hidden,) * p.reward_depth,
+                        ensemble_size=p.ensemble_size)
 
 
 def masked_correlation(x: jax.Array, y: jax.Array, n: jax.Array) -> jax.Array:

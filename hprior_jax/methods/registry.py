@@ -19,6 +19,10 @@ _METHODS = (
     ("pebble", "pebble", "PEBBLE: unsupervised pre-training, preference queries, relabelling"),
     ("prior_nrp", "prior", "PRIOR-NRP: PRIOR with min-max normalised, softmaxed credit (eq. 9)"),
     ("rvar", "rvar", "RVAR: PEBBLE + a prior of the return spread uniformly over the segment"),
+    ("surf", "surf", "SURF: PEBBLE + pseudo-labelled unlabelled pairs and temporal cropping"),
+    ("rune", "rune", "RUNE: PEBBLE + the reward ensemble's disagreement as a critic bonus"),
+    ("mrn", "mrn", "MRN: PEBBLE + a bi-level meta step that fits the reward to the critic"),
+    ("bisim", "bisim", "BISIM: PEBBLE + a bisimulation loss on the reward model's embedding"),
 )
 REFERENCE = "sac"  # the normaliser of Tables 6-7
 PROPOSED = "prior"  # the method the paired t-tests compare every other one with
@@ -40,7 +44,8 @@ class MethodSpec:
     lab_credit: str | None = None
     """How the method's reward update enters the reward-learning lab (`hprior reward-lab`): the
     credit α of its prior term (hprior_jax.lab.learn.CREDITS; "none" = cross-entropy only).
-    None: the method learns no reward from preferences."""
+    None: not a lab rule (SAC learns no reward; RUNE learns PEBBLE's reward and changes only the
+    agent's; MRN's meta step needs the agent's critic; SURF and BISIM are not yet rules)."""
 
 
 def names() -> list[str]:

@@ -40,10 +40,11 @@ class PreferenceConfig:
 class RewardTerm:
     """An auxiliary reward-learning loss: the update minimises CE + Σ weight · loss.
 
-    `loss(step_r1[K, b, T], step_r2[K, b, T], rows, mask[b]) -> scalar` is unweighted (and
-    logged so); `rows` are the minibatch's rows of `data`, a pytree whose leaves have the
+    `loss(step_r1[K, b, T], step_r2[K, b, T], rows, mask[b], params) -> scalar` is unweighted
+    (and logged so); `rows` are the minibatch's rows of `data`, a pytree whose leaves have the
     preference store's leading capacity axis, gathered with the same per-member indices
-    ([K, b, ...]). `weight` may be a traced scalar (a pytree leaf of the run state), so a
+    ([K, b, ...]); `params` are the ensemble parameters being trained (a term that reads the
+    networks' insides, e.g. an embedding, differentiates through them). `weight` may be a traced scalar (a pytree leaf of the run state), so a
     sweep over it is vmapped, not recompiled."""
 
     name: str  # its metric key, e.g. "prior/loss"
@@ -120,7 +121,7 @@ def _member_batch_loss(params, batch: PreferenceBatch, mask, reward_cfg, label_m
     s2 = per_member_rewards(params, batch.obs2, batch.act2, reward_cfg)
     loss, per_member, correct, n = bt_loss_from_returns(s1.sum(-1), s2.sum(-1), batch.labels, mask,
                                                         label_margin)
-    values = tuple(term.loss(s1, s2, r, mask) for term, r in zip(terms, rows))
+    values = tuple(term.loss(s1, s2, r, mask, params) for term, r in zip(terms, rows))
     for term, value in zip(terms, values):
         loss = loss + term.weight * value
     return loss, (per_member, correct, n, values)

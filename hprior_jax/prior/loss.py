@@ -110,7 +110,7 @@ def prior_term(lam, credit: PairCredit, variant: str = "raw") -> RewardTerm:
     if variant not in VARIANTS:
         raise ValueError(f"variant={variant!r}; choose one of {VARIANTS}")
 
-    def loss(step_r1, step_r2, rows: PairCredit, mask):
+    def loss(step_r1, step_r2, rows: PairCredit, mask, params):
         return pair_prior_loss(step_r1, step_r2, rows.alpha1, rows.alpha2, mask, variant)[0]
 
     return RewardTerm(name="prior/loss", weight=lam, loss=loss, data=credit)
