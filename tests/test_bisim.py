@@ -138,10 +138,10 @@ def test_bisim_loss_matches_numpy_eq8():
     rows = _rows(2)
     loss, aux = _loss(params, rows, MASK)
     bis, tra = _np_bisim(params, rows, MASK, GAMMA)
-    np.testing.assert_allclose(aux["bisim"], bis, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(aux["bisimulation"], bis, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(aux["transition"], tra, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(loss, (bis + tra).sum(), rtol=1e-5)
-    assert aux["bisim"].shape == aux["transition"].shape == (K,) and np.all(bis > 0)
+    assert aux["bisimulation"].shape == aux["transition"].shape == (K,) and np.all(bis > 0)
     # masked rows and invalid transitions do not count: changing them changes nothing
     junk = rows.replace(obs=rows.obs.at[:, 2].set(100.0), next_obs=rows.next_obs.at[:, 2].add(7.0))
     junk = junk.replace(obs=jnp.where(rows.valid[..., None], junk.obs, -50.0))
@@ -190,7 +190,7 @@ def test_gradients_reach_the_layers_and_stop_at_the_target():
         np.testing.assert_array_equal(g["Dense_2"][leaf], 0.0)
 
     # The bisim part: gradient = the manual eq. 8 with a detached target, not with a live one.
-    gb = jax.grad(lambda p: _parts(p, rows, MASK)["bisim"].sum())(params)
+    gb = jax.grad(lambda p: _parts(p, rows, MASK)["bisimulation"].sum())(params)
     g_stop = jax.grad(_manual_bisim)(params, rows, MASK, True)
     g_live = jax.grad(_manual_bisim)(params, rows, MASK, False)
     for a, b in zip(jax.tree.leaves(gb), jax.tree.leaves(g_stop)):
@@ -215,7 +215,7 @@ def test_gradients_reach_the_layers_and_stop_at_the_target():
     moved = jax.tree.map(lambda x: x, params)
     moved["params"]["next_embedding"] = jax.tree.map(lambda x: 3.0 * x,
                                                      params["params"]["next_embedding"])
-    change = jnp.abs(_parts(moved, rows, MASK)["bisim"] - _parts(params, rows, MASK)["bisim"])
+    change = jnp.abs(_parts(moved, rows, MASK)["bisimulation"] - _parts(params, rows, MASK)["bisimulation"])
     assert float(change.max()) > 1e-4
 
 

@@ -43,6 +43,7 @@ class MrnConfig:
     """Env steps between meta steps (MRN `config/train_MRN.yaml`; its README uses 1000 for
     walker and 10000 for door-open)."""
     outer_weight: float = 0.1
+    """Weight of the outer (preference) loss on the virtually updated critic."""
     time_limit_terminal: bool = True
     """Treat time-limit ends as terminal in the meta step, as the original's `not_done`."""
 

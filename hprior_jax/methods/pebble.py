@@ -118,10 +118,11 @@ class EpisodeWindow(NamedTuple):
 
 
 class Extension:
-    """What a method built on PEBBLE adds to it (PRIOR, RVAR): its own state (`ms.ext`), its
-    own host-side events, reward terms beside the preference cross-entropy (with the run
-    state at hand: replay buffer, SAC, keys), and the reward the agent trains on after
-    pre-training. The default adds nothing: PEBBLE itself."""
+    """What a method built on PEBBLE adds to it (PRIOR, RVAR, RUNE, BISIM): its own state
+    (`ms.ext`), its own host-side events, reward terms beside the preference cross-entropy
+    (with the run state at hand: replay buffer, SAC, keys), the reward the agent trains on
+    after pre-training, and the reward ensemble's architecture. The default adds nothing:
+    PEBBLE itself. (A method that changes the round itself subclasses `Pebble`: SURF, MRN.)"""
 
     def init(self, key: jax.Array):
         return None

@@ -75,7 +75,7 @@ def sample_transitions(key: jax.Array, buf: ReplayState, episode_len: int, capac
 def bisim_loss(params, rows: BisimTransitions, mask: jax.Array, *, reward_cfg: RewardConfig,
                discount: float) -> tuple[jax.Array, dict]:
     """rows leaves [K, b, m, ...] (each member its own rows), mask [b] (real minibatch rows)
-    -> (Σ_k loss_k, {"bisim": [K], "transition": [K]}), loss_k = bisim_k + transition_k."""
+    -> (Σ_k loss_k, {"bisimulation": [K], "transition": [K]}), loss_k = bisim_k + transition_k."""
     k = reward_cfg.ensemble_size
     # One forward pass over (s, a) and (s', a') per member: [K, b, 2m, ...].
     obs = jnp.concatenate([rows.obs, rows.next_obs], axis=2)
@@ -101,7 +101,7 @@ def bisim_loss(params, rows: BisimTransitions, mask: jax.Array, *, reward_cfg: R
     # The head learns to predict the next step's embedding (a fixed target for this loss).
     trans = jnp.mean((z_pred - jax.lax.stop_gradient(z_next)) ** 2, axis=-1)
     transition = (trans * w).sum(-1) / jnp.maximum(w.sum(-1), 1.0)
-    return (bisim + transition).sum(), {"bisim": bisim, "transition": transition}
+    return (bisim + transition).sum(), {"bisimulation": bisim, "transition": transition}
 
 
 def bisim_term(lam, transitions: BisimTransitions, *, reward_cfg: RewardConfig,

@@ -44,8 +44,9 @@ class RewardTerm:
     (and logged so); `rows` are the minibatch's rows of `data`, a pytree whose leaves have the
     preference store's leading capacity axis, gathered with the same per-member indices
     ([K, b, ...]); `params` are the ensemble parameters being trained (a term that reads the
-    networks' insides, e.g. an embedding, differentiates through them). `weight` may be a traced scalar (a pytree leaf of the run state), so a
-    sweep over it is vmapped, not recompiled."""
+    networks' insides, e.g. an embedding, differentiates through them). `weight` may be a
+    traced scalar (a pytree leaf of the run state), so a sweep over it is vmapped, not
+    recompiled."""
 
     name: str  # its metric key, e.g. "prior/loss"
     weight: Any
