@@ -1,6 +1,8 @@
 """SURF, RUNE, MRN and BISIM on the training loop (toy task): each runs under jit and vmap over
 two seeds, a seed's result does not depend on its slot, and a resumed run equals an
-uninterrupted one; plus each method's footprint in the run state."""
+uninterrupted one; each method's footprint in the run state; and the two that change the
+agent's update against PEBBLE from the same seeds (RUNE's bonus reaches the critic and nothing
+else; MRN's meta steps replace SAC steps)."""
 import dataclasses
 import json
 from pathlib import Path
@@ -14,7 +16,7 @@ from hprior_jax.agents.sac import SACConfig
 from hprior_jax.loop import host
 from hprior_jax.loop.engine import Engine
 from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
-from hprior_jax.networks.reward_ensemble import NEXT_EMBEDDING
+from hprior_jax.networks.reward_ensemble import NEXT_EMBEDDING, mean_reward
 
 BASELINES = ("surf", "rune", "mrn", "bisim")
 SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2,
@@ -26,18 +28,33 @@ def _cfg(tmp, algo, name, seeds):
                                 **SMALL)
 
 
-@pytest.fixture(scope="module", params=BASELINES)
-def runs(request, tmp_path_factory):
-    """Seeds (7, 8) uninterrupted, and seeds (8, 7) stopped after the first feedback round,
-    checkpointed, restored and finished: the same compiled programs with the lanes swapped."""
-    algo, tmp = request.param, tmp_path_factory.mktemp(request.param)
-    cfg = _cfg(tmp, algo, "full", (7, 8))
-    full = host.run(cfg, prepare_run_dir(cfg), progress=False)
-    split = _cfg(tmp, algo, "split", (8, 7))
-    run_dir = prepare_run_dir(split)
-    host.run(split, run_dir, progress=False, max_chunks=3)
-    resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
-    return algo, cfg, full, resumed
+@pytest.fixture(scope="module")
+def runs_of(tmp_path_factory):
+    """runs_of(algo) -> (cfg, full, mid, resumed), each run once per module: seeds (7, 8)
+    uninterrupted (`full`), and seeds (8, 7) stopped after the first feedback round and one
+    chunk (`mid`), checkpointed, restored and finished (`resumed`): the same compiled programs
+    with the lanes swapped."""
+    cache = {}
+
+    def get(algo):
+        if algo not in cache:
+            tmp = tmp_path_factory.mktemp(algo)
+            cfg = _cfg(tmp, algo, "full", (7, 8))
+            full = host.run(cfg, prepare_run_dir(cfg), progress=False)
+            split = _cfg(tmp, algo, "split", (8, 7))
+            run_dir = prepare_run_dir(split)
+            mid = host.run(split, run_dir, progress=False, max_chunks=3)
+            mid = jax.tree.map(np.asarray, mid)  # the resumed run donates its buffers
+            resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
+            cache[algo] = (cfg, full, mid, resumed)
+        return cache[algo]
+
+    return get
+
+
+@pytest.fixture(params=BASELINES)
+def runs(request, runs_of):
+    return (request.param, *runs_of(request.param))
 
 
 def _lane(rs, i):
@@ -49,7 +66,7 @@ def test_a_resumed_run_with_its_seeds_swapped_equals_the_uninterrupted_one(runs)
     lane (one that read another lane's state or its position would differ). Lanes of one
     program compute the same values for the same inputs; the tolerance only allows for that
     not being guaranteed bit for bit."""
-    _, _, full, resumed = runs
+    _, _, full, _, resumed = runs
     for lane_full, lane_resumed in ((0, 1), (1, 0)):
         for a, b in zip(_lane(full, lane_full), _lane(resumed, lane_resumed)):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
@@ -59,7 +76,7 @@ def test_a_resumed_run_with_its_seeds_swapped_equals_the_uninterrupted_one(runs)
 def test_each_method_leaves_its_mark(runs):
     """What the method adds is in the run state and the log (a method built as plain PEBBLE
     by mistake fails here)."""
-    algo, cfg, rs, _ = runs
+    algo, cfg, rs, _, _ = runs
     rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
     logged = {k for r in rows for k in r}
     method = Engine(cfg).method
@@ -79,6 +96,64 @@ def test_each_method_leaves_its_mark(runs):
         fresh = Engine(cfg).init_seeds([7, 8]).method.reward["params"][NEXT_EMBEDDING]["kernel"]
         assert np.abs(np.asarray(head) - np.asarray(fresh)).max() > 1e-4  # the head trained
         assert "bisim/loss" in logged
+
+
+def _flat(tree):
+    return np.concatenate([np.ravel(np.asarray(x)) for x in jax.tree.leaves(tree)])
+
+
+def test_rune_bonus_reaches_the_critic_and_nothing_else(runs_of):
+    """After the first round and one chunk (the reward model has seen the same data): RUNE's
+    reward model is PEBBLE's, its buffer holds r̂ alone, and its critic (reset at the round,
+    then trained with the bonus) is not PEBBLE's."""
+    (_, _, pebble, _), (cfg, _, rune, _) = runs_of("pebble"), runs_of("rune")
+    np.testing.assert_allclose(_flat(rune.method.reward), _flat(pebble.method.reward),
+                               rtol=1e-5, atol=1e-6)
+    size = int(rune.replay.size[0])
+    params = jax.tree.map(lambda x: x[0], rune.method.reward)
+    r_hat = mean_reward(params, rune.replay.obs[0, :size], rune.replay.action[0, :size],
+                        Engine(cfg).method.reward_cfg)
+    np.testing.assert_allclose(rune.replay.reward[0, :size], np.asarray(r_hat), rtol=2e-5,
+                               atol=2e-6)
+    assert np.abs(_flat(rune.sac.critic) - _flat(pebble.sac.critic)).max() > 1e-4
+
+
+def test_rune_logs_beta_on_the_global_step(runs_of):
+    """The chunk's mean β, logged at its end, is β_0 (1 − ρ)^t at its steps (20 steps move it
+    2e-4 relative), and only after pre-training."""
+    cfg = runs_of("rune")[0]
+    rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
+    logged = [r for r in rows if "train/rune_beta" in r]
+    assert logged and min(r["step"] for r in logged) > 40
+    beta0, rho = cfg.rune.beta_init, cfg.rune.beta_decay
+    for r in logged:
+        assert r["train/rune_beta"] == pytest.approx(beta0 * (1 - rho) ** (r["step"] - 1), rel=1e-3)
+        assert r["train/rune_bonus"] > 0
+
+
+def _critic_updates(rs):
+    """Adam's step count of the critic (reset with the critic at the first round)."""
+    return int(np.asarray(jax.tree.leaves(rs.sac.critic_opt)[0])[0])
+
+
+def test_mrn_meta_steps_replace_sac_steps(runs_of):
+    """As many critic updates as PEBBLE (each meta step made one, in place of the SAC step's),
+    the buffer relabelled after the last meta step, every meta step logged with its cost."""
+    (_, pebble, _, _), (cfg, mrn, _, _) = runs_of("pebble"), runs_of("mrn")
+    method = Engine(cfg).method
+    assert method.meta_steps() == [60, 80]  # rounds at 40 and 80: 20 labels < 40 at step 80
+    assert _critic_updates(mrn) == _critic_updates(pebble) == (
+        cfg.steps - 40 + cfg.pebble.reset_update)
+    size = int(np.asarray(mrn.replay.size)[0])
+    params = jax.tree.map(lambda x: x[0], mrn.method.reward)
+    r = mean_reward(params, mrn.replay.obs[0, :size], mrn.replay.action[0, :size],
+                    method.reward_cfg)
+    np.testing.assert_allclose(np.asarray(mrn.replay.reward[0, :size]), np.asarray(r),
+                               rtol=2e-5, atol=2e-6)
+    rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
+    meta = [r for r in rows if "mrn/outer_loss" in r]
+    assert [r["step"] for r in meta] == [60, 60, 80, 80]  # two seeds
+    assert all(r["perf/meta_step_s"] > 0 and np.isfinite(r["mrn/outer_loss"]) for r in meta)
 
 
 @pytest.mark.slow

@@ -1,5 +1,6 @@
 """MRN: the meta-gradient is the second-order derivative of the outer loss through the virtual
-critic step; the real update is SAC's with the updated reward; meta steps replace SAC steps."""
+critic step; the real update is SAC's with the updated reward; the meta-step schedule (that
+meta steps replace SAC steps in a run is checked in test_baselines.py)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,9 +10,7 @@ import pytest
 from hprior_jax import presets
 from hprior_jax.agents.sac import SAC, Batch, SACConfig
 from hprior_jax.buffers import preferences
-from hprior_jax.loop import host
 from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import prepare_run_dir
 from hprior_jax.methods.mrn import recent_pairs
 from hprior_jax.methods.pebble import PebbleState
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
@@ -112,40 +111,3 @@ def test_meta_steps_follow_the_original_schedule(tmp_path):
     # after the first round while the labels given so far are below 40: none from 160 on
     assert mrn.meta_steps() == [60, 80, 100, 120, 140]
     assert Engine(cfg).event_steps() == [40, 60, 80, 100, 120, 140, 160]
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("mrn")
-    out = {}
-    for algo in ("pebble", "mrn"):
-        cfg = presets.train_preset("toy_point", algo, "smoke", out=str(tmp / algo), **SMALL)
-        out[algo] = (cfg, host.run(cfg, prepare_run_dir(cfg), progress=False))
-    return out
-
-
-def _critic_updates(rs):
-    """Adam's step count of the critic (reset with the critic at the first round)."""
-    return int(np.asarray(jax.tree.leaves(rs.sac.critic_opt)[0])[0])
-
-
-def test_a_meta_step_replaces_the_sac_step(runs):
-    (_, pebble), (cfg, mrn) = runs["pebble"], runs["mrn"]
-    # as many critic updates as PEBBLE: each meta step made exactly one, in place of one
-    assert _critic_updates(mrn) == _critic_updates(pebble) == cfg.steps - 40 + cfg.pebble.reset_update
-    size = int(np.asarray(mrn.replay.size)[0])
-    params = jax.tree.map(lambda x: x[0], mrn.method.reward)
-    r = mean_reward(params, mrn.replay.obs[0, :size], mrn.replay.action[0, :size],
-                    Engine(cfg).method.reward_cfg)
-    np.testing.assert_allclose(np.asarray(mrn.replay.reward[0, :size]), np.asarray(r),
-                               rtol=2e-5, atol=2e-6)  # relabelled after the last meta step
-
-
-def test_meta_steps_are_logged_with_their_cost(runs):
-    import json
-
-    cfg, _ = runs["mrn"]
-    rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
-    meta = [r for r in rows if "mrn/outer_loss" in r]
-    assert [r["step"] for r in meta] == [60, 80, 100, 120, 140]
-    assert all(r["perf/meta_step_s"] > 0 and np.isfinite(r["mrn/outer_loss"]) for r in meta)
