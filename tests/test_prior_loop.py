@@ -44,21 +44,33 @@ def test_world_model_schedule(tmp_path):
     assert rvar.event_steps() == [40, 80, 120, 160]  # uniform α: no world model to train
 
 
+class _Runs(dict):
+    """name -> (cfg, final state, run dir), each run on first use (the fast suite needs only
+    PRIOR's)."""
+
+    SPECS = {"pebble": ("pebble", 0.0), "prior_lam0": ("prior", 0.0), "prior": ("prior", 5.0)}
+
+    def __init__(self, tmp):
+        super().__init__()
+        self.tmp = tmp
+
+    def __missing__(self, name):
+        algo, lam = self.SPECS[name]
+        cfg = _cfg(self.tmp, name, algo=algo, lam=lam)
+        self[name] = (cfg, _run(cfg), self.tmp / name)
+        return self[name]
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("prior")
-    out = {}
-    for name, algo, lam in (("pebble", "pebble", 0.0), ("prior_lam0", "prior", 0.0),
-                            ("prior", "prior", 5.0)):
-        cfg = _cfg(tmp, name, algo=algo, lam=lam)
-        out[name] = (cfg, _run(cfg), tmp / name)
-    return out
+    return _Runs(tmp_path_factory.mktemp("prior"))
 
 
 def _agent(rs):
     return jax.tree.leaves((rs.sac, rs.method.reward, rs.replay.reward))
 
 
+@pytest.mark.slow
 def test_lambda_zero_trains_exactly_pebbles_agent(runs):
     """Same seeds, λ = 0: the prior term adds exactly zero, and the world model draws its random
     numbers from a folded-off stream, so the agent and reward model match PEBBLE's (to float
@@ -136,4 +148,4 @@ def test_attention_maps_from_a_trained_run(runs, tmp_path):
     with pytest.raises(ValueError, match="choose 0..19"):
         attention_maps_for_run(run_dir, pair=20)
     with pytest.raises(ValueError, match="world model"):
-        attention_maps_for_run(runs["pebble"][2])
+        attention_maps_for_run(prepare_run_dir(_cfg(tmp_path, "pebble", algo="pebble")))
