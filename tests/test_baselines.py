@@ -28,25 +28,32 @@ def _cfg(tmp, algo, name, seeds):
                                 **SMALL)
 
 
+# the methods with state or events of their own get the resume and lane checks in the fast
+# suite; RUNE (no state) and BISIM (a λ leaf and a head in the reward parameters) in -m slow
+RESUME_CHECKED = ("surf", "mrn")
+
+
 @pytest.fixture(scope="module")
 def runs_of(tmp_path_factory):
-    """runs_of(algo) -> (cfg, full, mid, resumed), each run once per module: seeds (7, 8)
-    uninterrupted (`full`), and seeds (8, 7) stopped after the first feedback round and one
-    chunk (`mid`), checkpointed, restored and finished (`resumed`): the same compiled programs
-    with the lanes swapped."""
+    """runs_of(algo) -> (cfg, mid, resumed, full), each run once per module: seeds (8, 7)
+    stopped after the first feedback round and one chunk (`mid`), checkpointed, restored and
+    finished (`resumed`); `full(seeds)`: an uninterrupted run of the same config."""
     cache = {}
 
     def get(algo):
         if algo not in cache:
             tmp = tmp_path_factory.mktemp(algo)
-            cfg = _cfg(tmp, algo, "full", (7, 8))
-            full = host.run(cfg, prepare_run_dir(cfg), progress=False)
-            split = _cfg(tmp, algo, "split", (8, 7))
-            run_dir = prepare_run_dir(split)
-            mid = host.run(split, run_dir, progress=False, max_chunks=3)
+            cfg = _cfg(tmp, algo, "split", (8, 7))
+            run_dir = prepare_run_dir(cfg)
+            mid = host.run(cfg, run_dir, progress=False, max_chunks=3)
             mid = jax.tree.map(np.asarray, mid)  # the resumed run donates its buffers
             resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
-            cache[algo] = (cfg, full, mid, resumed)
+
+            def full(seeds):
+                c = _cfg(tmp, algo, "full_" + "_".join(map(str, seeds)), seeds)
+                return host.run(c, prepare_run_dir(c), progress=False)
+
+            cache[algo] = (cfg, mid, resumed, full)
         return cache[algo]
 
     return get
@@ -61,12 +68,16 @@ def _lane(rs, i):
     return [np.asarray(x)[i] for x in jax.tree.leaves(rs)]
 
 
-def test_a_resumed_run_with_its_seeds_swapped_equals_the_uninterrupted_one(runs):
+@pytest.mark.parametrize("algo", [*RESUME_CHECKED, *(pytest.param(a, marks=pytest.mark.slow)
+                                                    for a in BASELINES
+                                                    if a not in RESUME_CHECKED)])
+def test_a_resumed_run_with_its_seeds_swapped_equals_the_uninterrupted_one(runs_of, algo):
     """Resume restores everything the method keeps, and a seed's result does not depend on its
     lane (one that read another lane's state or its position would differ). Lanes of one
     program compute the same values for the same inputs; the tolerance only allows for that
     not being guaranteed bit for bit."""
-    _, _, full, _, resumed = runs
+    _, _, resumed, full = runs_of(algo)
+    full = full((7, 8))
     for lane_full, lane_resumed in ((0, 1), (1, 0)):
         for a, b in zip(_lane(full, lane_full), _lane(resumed, lane_resumed)):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
@@ -76,7 +87,7 @@ def test_a_resumed_run_with_its_seeds_swapped_equals_the_uninterrupted_one(runs)
 def test_each_method_leaves_its_mark(runs):
     """What the method adds is in the run state and the log (a method built as plain PEBBLE
     by mistake fails here)."""
-    algo, cfg, rs, _, _ = runs
+    algo, cfg, _, rs, _ = runs
     rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
     logged = {k for r in rows for k in r}
     method = Engine(cfg).method
@@ -93,7 +104,7 @@ def test_each_method_leaves_its_mark(runs):
         assert "mrn/outer_loss" in logged and method.meta_steps()
     elif algo == "bisim":
         head = rs.method.reward["params"][NEXT_EMBEDDING]["kernel"]
-        fresh = Engine(cfg).init_seeds([7, 8]).method.reward["params"][NEXT_EMBEDDING]["kernel"]
+        fresh = Engine(cfg).init_seeds([8, 7]).method.reward["params"][NEXT_EMBEDDING]["kernel"]
         assert np.abs(np.asarray(head) - np.asarray(fresh)).max() > 1e-4  # the head trained
         assert "bisim/loss" in logged
 
@@ -106,7 +117,7 @@ def test_rune_bonus_reaches_the_critic_and_nothing_else(runs_of):
     """After the first round and one chunk (the reward model has seen the same data): RUNE's
     reward model is PEBBLE's, its buffer holds r̂ alone, and its critic (reset at the round,
     then trained with the bonus) is not PEBBLE's."""
-    (_, _, pebble, _), (cfg, _, rune, _) = runs_of("pebble"), runs_of("rune")
+    (_, pebble, _, _), (cfg, rune, _, _) = runs_of("pebble"), runs_of("rune")
     np.testing.assert_allclose(_flat(rune.method.reward), _flat(pebble.method.reward),
                                rtol=1e-5, atol=1e-6)
     size = int(rune.replay.size[0])
@@ -139,7 +150,7 @@ def _critic_updates(rs):
 def test_mrn_meta_steps_replace_sac_steps(runs_of):
     """As many critic updates as PEBBLE (each meta step made one, in place of the SAC step's),
     the buffer relabelled after the last meta step, every meta step logged with its cost."""
-    (_, pebble, _, _), (cfg, mrn, _, _) = runs_of("pebble"), runs_of("mrn")
+    (_, _, pebble, _), (cfg, _, mrn, _) = runs_of("pebble"), runs_of("mrn")
     method = Engine(cfg).method
     assert method.meta_steps() == [60, 80]  # rounds at 40 and 80: 20 labels < 40 at step 80
     assert _critic_updates(mrn) == _critic_updates(pebble) == (

@@ -15,13 +15,15 @@ def test_perf_totals_sums_one_seed_and_every_part(tmp_path):
         {"step": 20, "seed": 2, "perf/chunk_s": 2.0, "perf/compile_s": 30.0},  # same, other seed
         {"step": 40, "seed": 1, "perf/chunk_s": 1.5, "perf/event_s": 4.0,
          "perf/world_model_s": 3.0, "perf/eval_s": 0.5, "perf/checkpoint_s": 0.25},
+        {"step": 40, "seed": 1, "perf/meta_step_s": 0.75},
         {"step": 40, "seed": 1, "train/critic_loss": 9.0},
     ]
     path = tmp_path / "metrics.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in records) + "\n")
     totals = perf_totals(path, first_seed=1)
     assert totals == {"steps": 40, "chunk_s": 3.5, "event_s": 4.0, "world_model_s": 3.0,
-                      "eval_s": 0.5, "checkpoint_s": 0.25, "compile_s": 30.0}
+                      "meta_step_s": 0.75, "eval_s": 0.5, "checkpoint_s": 0.25,
+                      "compile_s": 30.0}
 
 
 def test_roofline_columns():

@@ -98,6 +98,7 @@ def _gap(a, b):
     return float(np.abs(a - b).mean())
 
 
+@pytest.mark.slow
 def test_lambda_sweep_runs_vmapped_beside_the_seeds_in_one_program(lambda_sweep):
     """Every program of the run (chunks, world model, feedback rounds) compiles once for the
     six cells, and λ reaches each cell's reward model."""

@@ -38,17 +38,26 @@ def test_round_schedule_follows_bpref():
     assert Engine(clipped).method.rounds() == [(40, 10), (80, 10), (120, 5)]
 
 
+class _ToyRuns(dict):
+    """task -> (cfg, final state, run dir), each run on first use (toy_scaled only for the
+    slow isolation test)."""
+
+    def __init__(self, tmp):
+        super().__init__()
+        self.tmp = tmp
+
+    def __missing__(self, task):
+        cfg = _cfg(self.tmp, task, task=task, seeds=(7,))
+        self[task] = (cfg, host.run(cfg, prepare_run_dir(cfg), progress=False), self.tmp / task)
+        return self[task]
+
+
 @pytest.fixture(scope="module")
 def toy_runs(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("pebble")
-    out = {}
-    for task in ("toy_point", "toy_scaled"):
-        cfg = _cfg(tmp, task, task=task, seeds=(7,))
-        out[task] = (cfg, host.run(cfg, prepare_run_dir(cfg), progress=False),
-                     tmp / task)
-    return out
+    return _ToyRuns(tmp_path_factory.mktemp("pebble"))
 
 
+@pytest.mark.slow
 def test_true_reward_never_reaches_agent_or_reward_model(toy_runs):
     """Scaling the true reward by 3 leaves an oracle teacher's labels unchanged; if nothing
     but the teacher (and logging) reads the true reward, training is the same. (Not bit for

@@ -126,11 +126,12 @@ def disagreement(data):
 
 
 @pytest.fixture(scope="module")
-def seed_one_alone(data, disagreement):
-    cfg = dataclasses.replace(disagreement[0], seeds=(1,))
+def seed_one_alone(data):
+    cfg = dataclasses.replace(tiny(), seeds=(1,))
     return cfg, Lab(cfg, data).run(**quiet)
 
 
+@pytest.mark.slow
 def test_one_seed_equals_its_slot_in_the_vmapped_batch(disagreement, seed_one_alone):
     _, rows = disagreement
     _, alone = seed_one_alone
