@@ -59,7 +59,10 @@ def runs_of(tmp_path_factory):
     return get
 
 
-@pytest.fixture(params=BASELINES)
+# RUNE's and BISIM's loop runs are in -m slow (CI time); their mechanisms are checked fast in
+# test_rune.py and test_bisim.py
+@pytest.fixture(params=[*RESUME_CHECKED, *(pytest.param(a, marks=pytest.mark.slow)
+                                           for a in BASELINES if a not in RESUME_CHECKED)])
 def runs(request, runs_of):
     return (request.param, *runs_of(request.param))
 
@@ -113,6 +116,7 @@ def _flat(tree):
     return np.concatenate([np.ravel(np.asarray(x)) for x in jax.tree.leaves(tree)])
 
 
+@pytest.mark.slow
 def test_rune_bonus_reaches_the_critic_and_nothing_else(runs_of):
     """After the first round and one chunk (the reward model has seen the same data): RUNE's
     reward model is PEBBLE's, its buffer holds r̂ alone, and its critic (reset at the round,
@@ -129,6 +133,7 @@ def test_rune_bonus_reaches_the_critic_and_nothing_else(runs_of):
     assert np.abs(_flat(rune.sac.critic) - _flat(pebble.sac.critic)).max() > 1e-4
 
 
+@pytest.mark.slow
 def test_rune_logs_beta_on_the_global_step(runs_of):
     """The chunk's mean β, logged at its end, is β_0 (1 − ρ)^t at its steps (20 steps move it
     2e-4 relative), and only after pre-training."""

@@ -147,6 +147,7 @@ def test_one_seed_equals_its_slot_in_the_vmapped_batch(disagreement, seed_one_al
         assert gap(row, slot) < 1e-4 and gap(row, slot) < 1e-3 * other_seed, row["rule"]
 
 
+@pytest.mark.slow
 def test_true_reward_reaches_only_the_teacher_and_the_oracle(data, seed_one_alone):
     """Doubling every true reward leaves the oracle teacher's labels and the oracle credit
     unchanged, so every rule must learn exactly the same reward; a learner that read true
