@@ -125,11 +125,16 @@ class SAC:
         return squashed_gaussian_sample(key, mu, log_std)
 
     # -- losses ---------------------------------------------------------------------------
+    def target_value(self, state: SACState, next_obs, key):
+        """V'(s') = min(Q1', Q2')(s', a') - alpha * log pi(a'|s'), a' ~ pi(.|s') drawn from `key`
+        (no gradient: a regression target)."""
+        next_action, next_log_prob = self._sample(state.actor, next_obs, key)
+        tq1, tq2 = self.critic_net.apply(state.critic_target, next_obs, next_action)
+        return jax.lax.stop_gradient(
+            jnp.minimum(tq1, tq2) - jnp.exp(state.log_alpha) * next_log_prob)
+
     def critic_loss(self, critic, state: SACState, batch: Batch, key):
-        next_action, next_log_prob = self._sample(state.actor, batch.next_obs, key)
-        tq1, tq2 = self.critic_net.apply(state.critic_target, batch.next_obs, next_action)
-        alpha = jnp.exp(state.log_alpha)
-        target_v = jnp.minimum(tq1, tq2) - alpha * next_log_prob
+        target_v = self.target_value(state, batch.next_obs, key)
         target_q = jax.lax.stop_gradient(
             batch.reward + batch.not_done * self.cfg.discount * target_v)
         q1, q2 = self.critic_net.apply(critic, batch.obs, batch.action)

@@ -29,10 +29,7 @@ def inner_target(sac: SAC, state: SACState, batch: Batch, reward: jax.Array,
                  key: jax.Array) -> jax.Array:
     """y = r + not_done · γ · sg(V'(s')), with a' drawn as `SAC.critic_loss` draws it from `key`
     (the critic's half of `SAC.update`'s key)."""
-    next_action, next_log_prob = sac._sample(state.actor, batch.next_obs, key)
-    tq1, tq2 = sac.critic_net.apply(state.critic_target, batch.next_obs, next_action)
-    target_v = jax.lax.stop_gradient(jnp.minimum(tq1, tq2) - jnp.exp(state.log_alpha) * next_log_prob)
-    return reward + batch.not_done * sac.cfg.discount * target_v
+    return reward + batch.not_done * sac.cfg.discount * sac.target_value(state, batch.next_obs, key)
 
 
 def virtual_critic(sac: SAC, critic, batch: Batch, target: jax.Array, lr: float):
