@@ -38,11 +38,20 @@ class Checkpointer:
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
 
+    def all_steps(self) -> list[int]:
+        return list(self._manager.all_steps())
+
     def stored_names(self, step: int | None = None) -> set[str]:
         """Leaf names held by the checkpoint at `step` (default: the latest)."""
+        return set(self._metadata(step).keys())
+
+    def stored_shape(self, name: str, step: int | None = None) -> tuple[int, ...]:
+        return tuple(self._metadata(step)[name].shape)
+
+    def _metadata(self, step: int | None) -> dict:
         step = self.latest_step() if step is None else step
         metadata = ocp.StandardCheckpointer().metadata(self.directory / str(step) / "default")
-        return set(metadata.item_metadata.keys())
+        return metadata.item_metadata
 
     def restore(self, like, step: int | None = None, rename=None):
         """Restores into the structure, shapes and dtypes of `like` (a RunState).

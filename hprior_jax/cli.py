@@ -3,8 +3,10 @@
     hprior train --task cheetah_run --algo sac --preset smoke
     hprior train --task cheetah_run --seeds 12345 23456 --steps 100000 --sac.lr 3e-4
     hprior train --resume runs/cheetah_run_sac_20261122-101500
+    hprior eval --run runs/cheetah_run_sac_20261122-101500 --episodes 20 --video
+    hprior export --run runs/cheetah_run_prior_20261122-101500 --seed 12345 --out my_reward
     hprior attention --run runs/cheetah_run_prior_20261122-101500 --pair 3
-    hprior grid --tasks cheetah_run --algos sac pebble prior --budget reduced --out results
+    hprior grid --tasks cheetah_run --algos sac pebble prior --preset reduced --out results
     hprior report results
     hprior reward-lab --task cheetah_run --seeds 20 --budgets 25 100 400
     hprior tasks
@@ -13,16 +15,21 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
+from pathlib import Path
 
 from tasks import _xla_flags  # noqa: F401  (before anything imports jax)
 
+from hprior_jax.config import DEFAULT_PRESET, PRESETS
 from hprior_jax.methods import registry
 
 USAGE = """usage: hprior COMMAND [ARGS]
 
 commands:
   train      train an agent (hprior train --help for every option)
+  eval       evaluate a run's checkpoint per seed (true return, success), optionally a video
+  export     a seed's learned reward and policy as a standalone folder (hprior_jax.load_reward)
   attention  world-model attention maps of a trained run of a method with a world model
   grid       every (task, algorithm) with its seeds; skips finished runs, resumes the rest
   report     Tables 6-7, paired t-tests, learning curves of a grid's results directory
@@ -33,54 +40,116 @@ commands:
 
 
 def _train(argv: list[str]) -> int:
+    argv = _expand_aliases(argv)
     pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--task", default="cheetah_run")
-    pre.add_argument("--algo", default=registry.DEFAULT)
-    pre.add_argument("--preset", default="paper")
-    pre.add_argument("--resume", default=None)
-    pre.add_argument("--steps", type=int, default=None)
+    for name in ("--task", "--algo", "--preset", "--resume", "--teacher"):
+        pre.add_argument(name, default=None)
     pre.add_argument("--no-progress", action="store_true")
-    pre.add_argument("--teacher", default=None)
     known, rest = pre.parse_known_args(argv)
-    argv = [ALIASES.get(a, a) for a in argv]
+    help_asked = "-h" in rest or "--help" in rest
 
+    from hprior_jax import presets, provenance
+    from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.loop import host, run_dir as run_dirs
+    from hprior_jax.loop.engine import Engine
     from hprior_jax.setup_jax import enable_compilation_cache
 
-    if known.resume:
-        if rest:
-            raise SystemExit(f"--resume takes only --steps to extend a run; got {rest}")
-        run_dir = known.resume
-        cfg, saved_capacity = run_dirs.load_run_config(run_dir), None
-        if known.steps is not None and known.steps != cfg.steps:
-            cfg, saved_capacity = run_dirs.extend_run(run_dir, known.steps)
-        resume = True
+    if known.resume and not help_asked:
+        run_dir = Path(known.resume)
+        saved = run_dirs.load_run_config(run_dir)
+        for flag, value in (("task", known.task), ("algo", known.algo), ("preset", known.preset)):
+            if value is not None and value != getattr(saved, flag):
+                raise ValueError(f"--resume continues {run_dir}, a {saved.algo} run on "
+                                 f"{saved.task} ({saved.preset}); --{flag} {value} cannot change "
+                                 "it: start a new run (another --out)")
+        default = (saved if known.teacher is None
+                   else presets.with_teacher(saved, known.teacher))
+        requested = _parse_config(default, _tyro_args(argv))
+        ckpt = Checkpointer(run_dir / "checkpoints")
+        try:
+            step = ckpt.latest_step()
+        finally:
+            ckpt.close()
+        cfg, saved_capacity = run_dirs.resume_config(run_dir, requested, step)
+        enable_compilation_cache()
+        engine = Engine(cfg)
     else:
-        import tyro
-
-        from hprior_jax import presets
-
-        default = presets.train_preset(known.task, known.algo, known.preset)
+        task, algo = known.task or "cheetah_run", known.algo or registry.DEFAULT
+        default = presets.train_preset(task, algo, known.preset or DEFAULT_PRESET)
         if known.teacher is not None:
             default = presets.with_teacher(default, known.teacher)
-        if "-h" not in rest and "--help" not in rest:
-            rest = _drop_option([a for a in argv if a != "--no-progress"], "--teacher")
-        cfg = tyro.cli(type(default), default=default, args=rest, prog="hprior train",
-                       description=f"Train an agent on an MJX task (--algo {known.algo}).")
-        run_dir = run_dirs.prepare_run_dir(cfg)
-        resume, saved_capacity = False, None
-    enable_compilation_cache()
+        cfg = _parse_config(default, rest if help_asked else _tyro_args(argv),
+                            description=_train_description(algo))
+        cfg = dataclasses.replace(cfg, out=str(run_dirs.run_dir_path(cfg)))
+        run_dirs.check_out_dir(Path(cfg.out))
+        enable_compilation_cache()
+        engine = Engine(cfg)  # every configuration check runs before anything is written
+        run_dir = run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
+        saved_capacity = None
     print(f"run directory: {run_dir}", flush=True)
-    host.run(cfg, run_dir, resume=resume, progress=not known.no_progress,
-             saved_capacity=saved_capacity)
+    try:
+        host.run(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
+                 saved_capacity=saved_capacity, engine=engine)
+    except host.Interrupted as e:
+        print(f"\n{e}. Continue with:\n  hprior train --resume {run_dir}", file=sys.stderr,
+              flush=True)
+        return 130
     print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
           "tb/ (TensorBoard), checkpoints/", flush=True)
     return 0
 
 
+def _parse_config(default, args: list[str], **kw):
+    """tyro over `default`'s class; a configuration check that fails (a ValueError in a
+    config's __post_init__) is raised as that ValueError, so it prints as one line."""
+    import tyro
+
+    try:  # tyro 1.0 calls this hook before it draws its error box and exits
+        from tyro._errors import InstantiationFailure, on_parse_error
+    except ImportError:  # pragma: no cover - another tyro: its own box
+        return tyro.cli(type(default), default=default, args=args, prog="hprior train", **kw)
+
+    def raise_value_error(event):
+        if isinstance(event, InstantiationFailure):
+            raise ValueError(event.message)
+
+    with on_parse_error(raise_value_error):
+        return tyro.cli(type(default), default=default, args=args, prog="hprior train", **kw)
+
+
+def _train_description(algo: str) -> str:
+    from hprior_jax.envs import task_names
+    from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
+
+    return (f"Train an agent on an MJX task (--algo {algo}). Also: --task "
+            f"{{{','.join(task_names())}}}; --algo {{{','.join(registry.names())}}}; "
+            "--preset {paper,reduced,smoke}; --teacher "
+            f"{{{','.join(sorted(TEACHERS))}}} (a B-Pref teacher); --no-progress (no progress "
+            "bar); --resume DIR continues an interrupted run, where only --steps, --eval-every, "
+            "--checkpoint-every and --num-eval-episodes may change. Ctrl-C once finishes the "
+            "chunk in flight and saves a checkpoint; twice stops at once.")
+
+
+def _tyro_args(argv: list[str]) -> list[str]:
+    """argv less the options the pre-parser owns (tyro knows --task/--algo/--preset as
+    config fields, but not these)."""
+    out = [a for a in argv if a != "--no-progress"]
+    for name in ("--teacher", "--resume"):
+        out = _drop_option(out, name)
+    return out
+
+
 # short spellings of nested options (issue texts and the paper use these names)
 ALIASES = {"--feedback": "--pebble.max-feedback",
            "--queries-per-round": "--pebble.queries-per-round"}
+
+
+def _expand_aliases(argv: list[str]) -> list[str]:
+    out = []
+    for a in argv:
+        name, eq, value = a.partition("=")
+        out.append(ALIASES.get(name, name) + eq + value if name in ALIASES else a)
+    return out
 
 
 def _drop_option(argv: list[str], name: str) -> list[str]:
@@ -93,6 +162,51 @@ def _drop_option(argv: list[str], name: str) -> list[str]:
         elif not a.startswith(name + "="):
             out.append(a)
     return out
+
+
+def _eval(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="hprior eval",
+        description="Evaluate the policy of a run's checkpoint on fresh episodes, per seed: "
+                    "true return (mean and std) and, for MetaWorld, success rate. Writes "
+                    "RUN/eval_step<N>_<K>ep.csv; --video renders one episode per seed to "
+                    "RUN/videos/ (needs OSMesa: apt-get install libosmesa6).")
+    parser.add_argument("--run", required=True, help="a run directory of `hprior train`")
+    parser.add_argument("--step", type=int, default=None,
+                        help="which checkpoint (default: the latest; a run keeps its last two)")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--video", action="store_true")
+    args = parser.parse_args(argv)
+    from hprior_jax.experiments.evaluate_run import evaluate_run
+    from hprior_jax.setup_jax import enable_compilation_cache
+
+    enable_compilation_cache()
+    rows, videos = evaluate_run(args.run, args.step, args.episodes, args.video)
+    print(f"{args.run} at step {rows[0]['step']}, {args.episodes} episodes per seed:")
+    for r in rows:
+        extra = f", success {100 * r['success']:.0f}%" if "success" in r else ""
+        print(f"  seed {r['seed']}: true return {r['true_return']:.1f} "
+              f"± {r['true_return_std']:.1f}{extra}")
+    for path in videos:
+        print(path)
+    return 0
+
+
+def _export(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="hprior export",
+        description="Write one seed's learned reward ensemble and policy as a standalone "
+                    "folder (orbax checkpoint + export.json); load them elsewhere with "
+                    "hprior_jax.load_reward(FOLDER) and hprior_jax.load_policy(FOLDER).")
+    parser.add_argument("--run", required=True, help="a run directory of `hprior train`")
+    parser.add_argument("--out", required=True, help="a new folder")
+    parser.add_argument("--seed", type=int, default=None, help="default: the run's first")
+    parser.add_argument("--step", type=int, default=None, help="default: the latest")
+    args = parser.parse_args(argv)
+    from hprior_jax.export import export_seed
+
+    print(f"exported to {export_seed(args.run, args.out, args.seed, args.step)}")
+    return 0
 
 
 def _attention(argv: list[str]) -> int:
@@ -126,21 +240,28 @@ def _grid(argv: list[str]) -> int:
                         help=f"methods (default: {' '.join(registry.GRID_DEFAULT)}; all: "
                              f"{' '.join(registry.names())})")
     parser.add_argument("--seeds", nargs="+", type=int, default=list(PAPER_SEEDS))
-    parser.add_argument("--budget", default="reduced", choices=("paper", "reduced", "smoke"),
-                        help="the preset of every run (see README: Presets)")
+    parser.add_argument("--preset", "--budget", dest="preset", default=DEFAULT_PRESET,
+                        choices=PRESETS,
+                        help="the preset of every run, as `hprior train --preset` (default "
+                             "paper; see README: Presets). --budget is an older name")
     parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
     parser.add_argument("--eval-every", type=int, default=None)
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     from hprior_jax.experiments.grid import run_grid
+    from hprior_jax.loop import host
     from hprior_jax.setup_jax import enable_compilation_cache
 
     overrides = {k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
                  if v is not None}
     enable_compilation_cache()
-    run_grid(args.out, args.tasks, args.algos, args.seeds, args.budget, overrides,
-             progress=not args.no_progress)
+    try:
+        run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
+                 progress=not args.no_progress)
+    except host.Interrupted as e:
+        print(f"\n{e}. Continue the grid with the same command.", file=sys.stderr, flush=True)
+        return 130
     print(f"grid complete in {args.out}; make the tables with `hprior report {args.out}`")
     return 0
 
@@ -242,15 +363,21 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE)
         return 0 if argv else 2
+    if argv[0] in ("--version", "-V"):
+        from hprior_jax.provenance import version_string
+
+        print(version_string())
+        return 0
     command, rest = argv[0], argv[1:]
-    commands = {"train": _train, "attention": _attention, "grid": _grid, "report": _report,
+    commands = {"train": _train, "eval": _eval, "export": _export, "attention": _attention, "grid": _grid, "report": _report,
                 "reward-lab": _reward_lab, "tasks": _tasks, "methods": _methods}
     if command not in commands:
         print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
         return 2
     try:
         return commands[command](rest)
-    except (ValueError, FileExistsError, FileNotFoundError) as e:
+    except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError,
+            PermissionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
 

@@ -18,6 +18,7 @@ from hprior_jax.agents.sac import SACConfig
 from hprior_jax.methods import registry
 
 PRESETS = ("paper", "reduced", "smoke")
+DEFAULT_PRESET = "paper"  # of `hprior train` and `hprior grid`: the appendix's budget
 FORMAT = 2  # config.json layout: 2 = per-method sections (1 = every run had pebble and prior)
 
 
@@ -94,6 +95,23 @@ def config_class(algo: str) -> type[RunConfig]:
                                      frozen=True)
     cls.__doc__ = f"{RunConfig.__doc__}\n\n{algo}: {', '.join(spec.sections) or 'no sections'}"
     return cls
+
+
+def differing_fields(a: RunConfig, b: RunConfig) -> list[str]:
+    """Dotted names of the fields (sections' included) whose values differ."""
+    return _differing(dataclasses.asdict(a), dataclasses.asdict(b))
+
+
+def _differing(a: dict, b: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(a) | set(b)):
+        x, y = a.get(k), b.get(k)
+        if isinstance(x, dict) and isinstance(y, dict):
+            out += _differing(x, y, f"{prefix}{k}.")
+        elif (list(x) if isinstance(x, (list, tuple)) else x) != (
+                list(y) if isinstance(y, (list, tuple)) else y):
+            out.append(prefix + k)
+    return out
 
 
 def _dataclass_from_dict(cls, d: dict):

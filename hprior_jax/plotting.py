@@ -1,7 +1,6 @@
 """Learning-curve plots from a run directory's eval.csv (host side)."""
 from __future__ import annotations
 
-import csv
 from collections import defaultdict
 from pathlib import Path
 
@@ -11,22 +10,36 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from hprior_jax.run_log import read_eval_rows  # noqa: E402
+
 
 def read_eval_csv(path: Path, column: str = "true_return"):
     """{seed: (steps[], values[])} from eval.csv."""
     per_seed = defaultdict(list)
-    with Path(path).open() as f:
-        for row in csv.DictReader(f):
-            if row[column] != "":
-                per_seed[int(row["seed"])].append((int(row["step"]), float(row[column])))
+    header, *rows = read_eval_rows(path)
+    for row in (dict(zip(header, r)) for r in rows):
+        if row[column] != "":
+            per_seed[int(row["seed"])].append((int(row["step"]), float(row[column])))
     return {s: tuple(map(np.asarray, zip(*sorted(v)))) for s, v in per_seed.items()}
 
 
-def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "",
-                        column: str = "true_return") -> Path:
-    """Each seed thin, the mean over seeds bold with a +-1 std band (where steps align)."""
-    curves = read_eval_csv(eval_csv, column)
-    fig, ax = plt.subplots(figsize=(6, 4))
+def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "") -> Path:
+    """Each seed thin, the mean over seeds bold with a +-1 std band (where steps align):
+    the true return, and beside it the success rate where the task has one (MetaWorld)."""
+    panels = [("true_return", "evaluation true return")]
+    if read_eval_csv(eval_csv, "success"):
+        panels.insert(0, ("success", "evaluation success rate"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4), squeeze=False)
+    for ax, (column, ylabel) in zip(axes[0], panels):
+        _plot_seeds(ax, read_eval_csv(eval_csv, column), ylabel)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+    return Path(out_png)
+
+
+def _plot_seeds(ax, curves: dict, ylabel: str) -> None:
     for seed, (steps, values) in sorted(curves.items()):
         ax.plot(steps, values, lw=0.8, alpha=0.5, label=f"seed {seed}")
     if len(curves) > 1:
@@ -38,12 +51,7 @@ def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "",
             ax.plot(common, mean, color="k", lw=2, label="mean")
             ax.fill_between(common, mean - std, mean + std, color="k", alpha=0.15)
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("evaluation " + column.replace("_", " "))
-    ax.set_title(title)
+    ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     if curves:
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out_png, dpi=120)
-    plt.close(fig)
-    return Path(out_png)

@@ -1,16 +1,51 @@
 """Run-directory metric writers: JSONL (everything), CSV (evaluations), TensorBoard.
 
-On resume, records after the restored checkpoint's step are dropped first: the resumed run
+Every line is written whole by one write of a line-buffered file, so a kill leaves at most
+one torn last line; the readers here drop such a line with a warning naming the file. On
+resume, records after the restored checkpoint's step are dropped first: the resumed run
 regenerates them exactly, so nothing that the checkpoint does not cover is duplicated, and
 everything up to it is kept."""
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
+import warnings
 from pathlib import Path
 
 EVAL_FIELDS = ("step", "seed", "true_return", "success")
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    """The records of a metrics.jsonl; a torn last line (a kill mid-write) is dropped with a
+    warning, a bad line anywhere else is an error naming the file and line."""
+    path = Path(path)
+    lines = path.read_text().splitlines()
+    records = []
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            if i == len(lines) - 1:
+                warnings.warn(f"{path}: dropped a torn last line ({len(line)} characters; a "
+                              "kill mid-write leaves one)", stacklevel=2)
+                break
+            raise ValueError(f"{path}, line {i + 1}: not a JSON record ({e.msg})") from None
+    return records
+
+
+def read_eval_rows(path: Path) -> list[list[str]]:
+    """The rows of an eval.csv, header first; a torn last row is dropped with a warning."""
+    path = Path(path)
+    text = path.read_text()
+    rows = [r for r in csv.reader(io.StringIO(text)) if r]
+    if len(rows) > 1 and (len(rows[-1]) != len(EVAL_FIELDS) or not text.endswith("\n")):
+        warnings.warn(f"{path}: dropped a torn last row {rows[-1]!r}", stacklevel=2)
+        rows = rows[:-1]
+    return rows
 
 
 class RunLog:
@@ -21,10 +56,11 @@ class RunLog:
         self.eval_csv_path = self.dir / "eval.csv"
         if resume_step is not None:
             self._truncate_after(resume_step)
-        new_csv = not self.eval_csv_path.exists()
-        self._jsonl = open(self.jsonl_path, "a")
-        self._csv_file = open(self.eval_csv_path, "a", newline="")
-        self._csv = csv.writer(self._csv_file)
+        new_csv = not self.eval_csv_path.exists() or self.eval_csv_path.stat().st_size == 0
+        # line-buffered: each line reaches the file whole, in one write
+        self._jsonl = open(self.jsonl_path, "a", buffering=1)
+        self._csv_file = open(self.eval_csv_path, "a", newline="", buffering=1)
+        self._csv = csv.writer(self._csv_file, lineterminator="\n")
         if new_csv:
             self._csv.writerow(EVAL_FIELDS)
         self._tb = self._open_tensorboard(resume_step)
@@ -34,19 +70,20 @@ class RunLog:
             from tensorboardX import SummaryWriter
         except ImportError:  # pragma: no cover - tensorboardX is a core dependency
             return {}
-        return {s: SummaryWriter(str(self.dir / "tb" / f"seed_{s}"), purge_step=resume_step)
+        # events at steps after the checkpoint are dropped (its own step's were kept)
+        purge = None if resume_step is None else resume_step + 1
+        return {s: SummaryWriter(str(self.dir / "tb" / f"seed_{s}"), purge_step=purge)
                 for s in self.seeds}
 
     def _truncate_after(self, step: int) -> None:
         if self.jsonl_path.exists():
-            keep = [l for l in self.jsonl_path.read_text().splitlines()
-                    if l.strip() and json.loads(l)["step"] <= step]
-            self.jsonl_path.write_text("".join(l + "\n" for l in keep))
+            keep = [r for r in read_jsonl(self.jsonl_path) if r["step"] <= step]
+            self.jsonl_path.write_text("".join(json.dumps(r) + "\n" for r in keep))
         if self.eval_csv_path.exists():
-            rows = list(csv.reader(self.eval_csv_path.open()))
-            keep = [rows[0]] + [r for r in rows[1:] if int(r[0]) <= step]
+            rows = read_eval_rows(self.eval_csv_path)
+            keep = rows[:1] + [r for r in rows[1:] if int(r[0]) <= step]
             with self.eval_csv_path.open("w", newline="") as f:
-                csv.writer(f).writerows(keep)
+                csv.writer(f, lineterminator="\n").writerows(keep or [EVAL_FIELDS])
 
     def log(self, step: int, seed: int, metrics: dict) -> None:
         """Scalar metrics keyed `group/name` for one seed."""

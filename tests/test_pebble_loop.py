@@ -124,3 +124,19 @@ def test_pebble_config_errors(tmp_path):
         Engine(_cfg(tmp_path, "y", pebble=PebbleConfig(segment_len=20)))
     with pytest.raises(ValueError, match="multiple of 20"):
         Engine(_cfg(tmp_path, "z", steps=210))
+
+
+def test_exported_reward_is_the_runs_learned_reward(toy_runs, tmp_path):
+    """`hprior export` + `hprior_jax.load_reward`: a pure function equal to the mean of the
+    run's ensemble (the reward its buffer holds), usable without the run directory."""
+    import hprior_jax
+
+    cfg, rs, run_dir = toy_runs["toy_point"]
+    assert cli.main(["export", "--run", str(run_dir), "--out", str(tmp_path / "exp")]) == 0
+    reward = jax.jit(hprior_jax.load_reward(tmp_path / "exp"))
+    size = int(np.asarray(rs.replay.size)[0])
+    np.testing.assert_allclose(np.asarray(reward(rs.replay.obs[0, :size],
+                                                 rs.replay.action[0, :size])),
+                               np.asarray(rs.replay.reward[0, :size]), rtol=2e-5, atol=2e-6)
+    meta = json.loads((tmp_path / "exp" / "export.json").read_text())
+    assert (meta["algo"], meta["seed"], meta["step"]) == ("pebble", 7, cfg.steps)

@@ -9,7 +9,7 @@ import pytest
 from hprior_jax import cli
 from hprior_jax.loop import host
 from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
+from hprior_jax.loop.run_dir import RunDirError, load_run_config, prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import RunConfig
 
@@ -60,7 +60,7 @@ def test_refuses_non_empty_output_dir_and_keeps_it(tmp_path):
     out = tmp_path / "busy"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    with pytest.raises(FileExistsError, match="--resume"):
+    with pytest.raises(RunDirError, match="not empty"):
         prepare_run_dir(_cfg(tmp_path, "busy"))
     assert (out / "notes.txt").read_text() == "mine"
 

@@ -68,9 +68,7 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
                            out: Path | None = None) -> list[Path]:
     """Restores the latest checkpoint of a run with a world model (PRIOR, PRIOR-NRP) and draws both segments of stored
     preference pair `pair` for `seed` (default: the run's first). Returns the PNG paths."""
-    from hprior_jax.checkpoint import Checkpointer
-    from hprior_jax.loop.engine import Engine
-    from hprior_jax.loop.host import restore_latest
+    from hprior_jax.loop.restore import restore_run
     from hprior_jax.loop.run_dir import load_run_config
     from hprior_jax.methods import registry
 
@@ -79,17 +77,12 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
     if not registry.get(cfg.algo).has_world_model:
         raise ValueError(f"{run_dir} is a --algo {cfg.algo} run; attention maps need a "
                          "method with a world model")
-    seed = cfg.seeds[0] if seed is None else seed
-    if seed not in cfg.seeds:
+    if seed is not None and seed not in cfg.seeds:
         raise ValueError(f"seed {seed} is not in this run; its seeds are {list(cfg.seeds)}")
-    engine = Engine(cfg)
-    ckpt = Checkpointer(run_dir / "checkpoints")
-    if ckpt.latest_step() is None:
-        raise FileNotFoundError(f"{run_dir}/checkpoints holds no checkpoint yet")
-    step, rs = restore_latest(ckpt, engine.init_seeds(list(cfg.seeds)))
-    ckpt.close()
-    i = list(cfg.seeds).index(seed)
-    ms = jax.tree.map(lambda x: x[i], rs.method)
+    restored = restore_run(run_dir)
+    cfg, engine, step = restored.cfg, restored.engine, restored.step
+    seed = cfg.seeds[0] if seed is None else seed
+    ms = restored.of_seed(seed).method
     prefs, wm_params = ms.prefs, ms.ext.wm.params
     count = int(prefs.count)
     if not 0 <= pair < count:

@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from hprior_jax.config import RunConfig
+from hprior_jax.config import RunConfig, differing_fields
 from hprior_jax.methods import registry
 
 PAPER_SEEDS = (12345, 23456, 34567, 45678, 56789)  # appendix E
@@ -53,8 +53,7 @@ def run_status(cfg: RunConfig) -> str:
         raise FileExistsError(f"{run_dir} is not empty but holds no config.json; move it away "
                               "so the grid can start that run afresh")
     saved = load_run_config(run_dir)
-    differs = _differing_fields(dataclasses.asdict(saved), dataclasses.asdict(cfg))
-    differs = [k for k in differs if k != "out"]
+    differs = [k for k in differing_fields(saved, cfg) if k != "out"]
     if differs:
         raise ValueError(
             f"{run_dir} was run with a different configuration ({', '.join(differs)}); use "
@@ -71,18 +70,6 @@ def run_status(cfg: RunConfig) -> str:
 
 def _jsonable(obj):
     return dataclasses.asdict(obj) if dataclasses.is_dataclass(obj) else str(obj)
-
-
-def _differing_fields(a: dict, b: dict, prefix: str = "") -> list[str]:
-    out = []
-    for k in sorted(set(a) | set(b)):
-        x, y = a.get(k), b.get(k)
-        if isinstance(x, dict) and isinstance(y, dict):
-            out += _differing_fields(x, y, f"{prefix}{k}.")
-        elif (list(x) if isinstance(x, (list, tuple)) else x) != (
-                list(y) if isinstance(y, (list, tuple)) else y):
-            out.append(prefix + k)
-    return out
 
 
 def plan(root: Path, tasks, algos, seeds, budget: str = "reduced",

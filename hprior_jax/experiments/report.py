@@ -15,6 +15,7 @@ import numpy as np
 from hprior_jax.experiments.scores import paired_t_test, task_scores
 from hprior_jax.methods import registry
 from hprior_jax.plotting import read_eval_csv
+from hprior_jax.run_log import read_jsonl
 
 REFERENCE = registry.REFERENCE  # every score is normalised by it
 METHOD = registry.PROPOSED  # the t-tests compare every other method with it
@@ -24,6 +25,9 @@ TABLE_NAME = {"success": "Table 6: normalized success rate (MetaWorld)",
 
 def discover(root: Path) -> dict[str, dict[str, Path]]:
     """{task: {algo: run_dir}} of every run directory under `root` with an eval.csv."""
+    if not Path(root).is_dir():
+        raise FileNotFoundError(f"{root} is not a directory; give the --out folder of an "
+                                "`hprior grid` run")
     runs: dict[str, dict[str, Path]] = defaultdict(dict)
     for cfg_path in sorted(Path(root).glob("*/*/config.json")):
         run_dir = cfg_path.parent
@@ -33,7 +37,7 @@ def discover(root: Path) -> dict[str, dict[str, Path]]:
         runs[cfg["task"]][cfg["algo"]] = run_dir
     if not runs:
         raise FileNotFoundError(f"no run directories with eval.csv under {root}; make them "
-                                "with `hprior grid --out {root} ...`")
+                                f"with `hprior grid --out {root} ...`")
     return dict(runs)
 
 
@@ -116,10 +120,7 @@ def reward_correlations(runs) -> list[dict]:
 def _metrics(run_dir: Path):
     path = run_dir / "metrics.jsonl"
     if path.exists():
-        with path.open() as f:
-            for line in f:
-                if line.strip():
-                    yield json.loads(line)
+        yield from read_jsonl(path)
 
 
 def labels_at(run_dir: Path) -> dict[int, list[tuple[int, float]]]:
@@ -226,8 +227,8 @@ def make_report(root: Path, out: Path | None = None, how: str = "mean-of-ratios"
     """Writes the report into `out` (default ROOT/report) and returns the Markdown path."""
     root = Path(root)
     out = Path(out) if out else root / "report"
+    runs = discover(root)  # before anything is written
     (out / "curves").mkdir(parents=True, exist_ok=True)
-    runs = discover(root)
     rows = compute_scores(runs, how, min_reference, pair_by_seed)
     table = score_table(rows)
     tests = t_tests(rows, pair_by)

@@ -6,7 +6,9 @@ only as the engine and the method name them.
 from __future__ import annotations
 
 import contextlib
+import signal
 import sys
+import threading
 import time
 from functools import partial
 from pathlib import Path
@@ -26,19 +28,33 @@ class TrainingDiverged(RuntimeError):
     pass
 
 
+class Interrupted(Exception):
+    """The user pressed Ctrl-C: the chunk in flight finished and a checkpoint was written."""
+
+    def __init__(self, run_dir: Path, step: int):
+        super().__init__(f"interrupted at step {step}; checkpoint saved in {run_dir}")
+        self.run_dir, self.step = run_dir, step
+
+
 def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
-        max_chunks: int | None = None, saved_capacity: int | None = None) -> RunState:
+        max_chunks: int | None = None, saved_capacity: int | None = None,
+        engine: Engine | None = None) -> RunState:
     """Trains `cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to resume).
 
     `max_chunks` stops early after that many chunks (used by tests to simulate an
     interruption); the state is checkpointed at the stop. `saved_capacity` is the replay
-    capacity of the checkpoints when a resumed run's budget was extended."""
+    capacity of the checkpoints when a resumed run's budget was extended. `engine`: one
+    already built for `cfg` (the CLI builds it before writing anything, so configuration
+    errors leave no run directory behind).
+
+    The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
+    `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
     from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.plotting import plot_learning_curve
     from hprior_jax.run_log import RunLog
 
     run_dir = Path(run_dir)
-    engine = Engine(cfg)
+    engine = engine or Engine(cfg)
     seeds = list(cfg.seeds)
     ckpt = Checkpointer(run_dir / "checkpoints")
     step = 0
@@ -57,9 +73,10 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     log = RunLog(run_dir, seeds, resume_step=step if resume else None)
     has_success = engine.task.has_success
     last_ckpt = step
-    bar = _progress_bar(cfg.steps, step, progress)
+    bar = _ProgressBar(cfg.steps, step, progress, len(seeds), has_success)
     chunks = 0
     events = set(engine.event_steps())
+    interrupt = _InterruptRequest()
     try:
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
@@ -88,8 +105,9 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 for i, s in enumerate(seeds):
                     log.log_eval(step, s, float(np.mean(returns[i])),
                                  float(np.mean(successes[i])) if has_success else None)
-                bar.set_postfix_str(f"eval return {np.mean(returns):.1f}")
-            if step % cfg.checkpoint_every == 0 or step == cfg.steps or (
+                bar.evaluated(np.mean(returns), np.mean(successes))
+            stop = interrupt.requested  # read once: a checkpoint is written for every stop
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps or stop or (
                     max_chunks is not None and chunks == max_chunks):
                 log.flush()
                 with timer("checkpoint_s"):
@@ -103,11 +121,12 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             log.flush()  # a crash or kill loses at most the chunk in flight
             for name in sorted(set(engine.compile_seconds) - compiled_before):
                 bar.write(f"compiled {name} in {engine.compile_seconds[name]:.1f} s "
-                          "(once per shape; not counted in env steps/s)", file=sys.stdout)
-                sys.stdout.flush()
-            bar.update(length)
-            bar.set_description(f"{perf['perf/env_steps_per_s']:.0f} env steps/s")
+                          "(once per shape; not counted in env steps/s)")
+            bar.advance(length, sum(v for k, v in timer.seconds.items() if k != "compile_s"))
+            if stop and step < cfg.steps:
+                raise Interrupted(run_dir, step)
     finally:
+        interrupt.restore()
         bar.close()
         log.close()
         ckpt.close()
@@ -117,11 +136,12 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     return rs
 
 
-def restore_latest(ckpt, like: RunState):
-    """The latest checkpoint, written by today's state layout or the first one."""
-    stored = ckpt.stored_names()
+def restore_latest(ckpt, like: RunState, step: int | None = None):
+    """The checkpoint at `step` (default: the latest), written by today's state layout or
+    the first one."""
+    stored = ckpt.stored_names(step)
     legacy = any(name.startswith(".extra") for name in stored)
-    return ckpt.restore(like, rename=legacy_checkpoint_name if legacy else None)
+    return ckpt.restore(like, step, rename=legacy_checkpoint_name if legacy else None)
 
 
 def _finite_or_raise(metrics: dict, step0: int, step1: int, seeds, run_dir, last_ckpt):
@@ -172,8 +192,68 @@ def _log_chunk(log, seeds, step0: int, metrics: dict, has_success: bool) -> None
             log.log(step0 + done.shape[1], s, losses)
 
 
-def _progress_bar(total: int, initial: int, enabled: bool):
-    from tqdm.auto import tqdm
+class _InterruptRequest:
+    """SIGINT handler for the run: the first Ctrl-C is a request to stop after the chunk in
+    flight (XLA cannot be interrupted mid-program anyway), the second stops at once. Only
+    the main thread can own signals; elsewhere Ctrl-C keeps its default behaviour."""
 
-    return tqdm(total=total, initial=initial, unit="step", disable=not enabled,
-                dynamic_ncols=True, mininterval=1.0)
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum, frame):
+        self.requested = True
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        print("\nCtrl-C: finishing the chunk in flight and writing a checkpoint (press "
+              "Ctrl-C again to stop at once and lose that chunk)", file=sys.stderr, flush=True)
+
+    def restore(self):
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
+class _ProgressBar:
+    """tqdm with one rate, env steps per second over all seeds, from the wall time of the
+    training parts only (compiles excluded), and the ETA from that rate; the latest
+    evaluation (return, and success rate where the task has one) beside it."""
+
+    def __init__(self, total: int, initial: int, enabled: bool, num_seeds: int,
+                 has_success: bool):
+        from tqdm.auto import tqdm
+
+        self.total, self.done, self.num_seeds = total, initial, num_seeds
+        self.has_success = has_success
+        self.steps, self.seconds = 0, 0.0
+        self._eval = ""
+        self._bar = tqdm(total=total, initial=initial, unit="step", disable=not enabled,
+                         dynamic_ncols=True, mininterval=1.0,
+                         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {postfix}")
+
+    def advance(self, length: int, seconds: float) -> None:
+        self.done += length
+        self.steps += length
+        self.seconds += seconds
+        rate = self.steps / max(self.seconds, 1e-9)  # per seed
+        eta = (self.total - self.done) / rate
+        self._bar.set_postfix_str(f"{rate * self.num_seeds:.0f} env steps/s, ETA "
+                                  f"{_clock(eta)}{self._eval}", refresh=False)
+        self._bar.update(length)
+
+    def evaluated(self, mean_return: float, mean_success: float) -> None:
+        self._eval = f", eval return {mean_return:.1f}"
+        if self.has_success:
+            self._eval += f", success {100 * mean_success:.0f}%"
+
+    def write(self, line: str) -> None:
+        self._bar.write(line, file=sys.stdout)
+        sys.stdout.flush()
+
+    def close(self) -> None:
+        self._bar.close()
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 
@@ -17,17 +18,57 @@ from hprior_jax.config import RunConfig
 from hprior_jax.methods import registry
 
 
-def prepare_run_dir(cfg: RunConfig) -> Path:
-    """Creates the run directory; refuses to write into a non-empty one."""
-    out = Path(cfg.out) if cfg.out else Path("runs") / (
+class RunDirError(ValueError):
+    """A run directory that cannot be used; the message names the path and the fix."""
+
+
+def run_dir_path(cfg: RunConfig) -> Path:
+    return Path(cfg.out) if cfg.out else Path("runs") / (
         f"{cfg.task}_{cfg.algo}_{time.strftime('%Y%m%d-%H%M%S')}")
-    if out.exists() and any(out.iterdir()):
-        raise FileExistsError(
-            f"output directory {out} exists and is not empty; continue it with "
-            f"`hprior train --resume {out}` or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(cfg.to_json() + "\n")
+
+
+def check_out_dir(out: Path) -> Path:
+    """Refuses, without writing anything, an --out that is not empty or cannot be written."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RunDirError(f"--out {out} is a file, not a directory; choose another --out")
+    if out.is_dir() and any(out.iterdir()):
+        fix = (f"continue it with `hprior train --resume {out}` or choose another --out"
+               if (out / "config.json").exists() else
+               "it is not a run directory (no config.json): choose another --out")
+        raise RunDirError(f"output directory {out} exists and is not empty; {fix}")
+    parent = next(p for p in (out, *out.absolute().parents) if p.exists())
+    if not parent.is_dir():
+        raise RunDirError(f"--out {out}: {parent} is a file, so no directory can be made "
+                          "under it; choose another --out")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise RunDirError(f"--out {out}: no permission to write in {parent}; choose a "
+                          "directory you can write to")
     return out
+
+
+def prepare_run_dir(cfg: RunConfig, run_info: dict | None = None) -> Path:
+    """Creates the run directory and its config.json; refuses a non-empty or unwritable one.
+    `run_info` (what produced the run: `hprior_jax.provenance.run_info()`) is stored beside
+    the configuration."""
+    out = check_out_dir(run_dir_path(cfg))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_config(out, cfg, run_info)
+    except OSError as e:
+        raise RunDirError(f"--out {out}: {e.strerror or e}; choose another --out") from None
+    return out
+
+
+def write_config(run_dir: Path, cfg: RunConfig, run_info: dict | None) -> None:
+    d = json.loads(cfg.to_json())
+    if run_info is not None:
+        d["run_info"] = run_info
+    (Path(run_dir) / "config.json").write_text(json.dumps(d, indent=2) + "\n")
+
+
+def run_info_of(run_dir: Path) -> dict | None:
+    return _read_json(run_dir).get("run_info")
 
 
 def load_run_config(run_dir: Path) -> RunConfig:
@@ -36,6 +77,7 @@ def load_run_config(run_dir: Path) -> RunConfig:
 
 def read_config(d: dict) -> RunConfig:
     """config.json of either format -> today's RunConfig."""
+    d = {k: v for k, v in d.items() if k != "run_info"}
     if d.get("format", 1) == 1:
         d = registry.from_format_1(d)
     return RunConfig.from_dict(d)
@@ -50,23 +92,53 @@ def legacy_checkpoint_name(name: str) -> str | None:
     return name.replace(".method.ext.", ".extra.").replace(".method.", ".extra.")
 
 
-def extend_run(run_dir: Path, steps: int) -> tuple[RunConfig, int]:
-    """Raises the step budget of an existing run; returns the new config and the replay
-    capacity its checkpoints were written with."""
+# what a resumed run may change: the budget and the cadences (they decide when to evaluate
+# and save, not what is learned); everything else would make a different run
+CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes")
+
+
+def resume_config(run_dir: Path, requested: RunConfig, checkpoint_step: int | None
+                  ) -> tuple[RunConfig, int | None]:
+    """The run's config with the changes `requested` may make on resume (other changes are
+    refused, naming them); writes it, keeping the previous config.json beside it. Returns
+    the config and the replay capacity of the run's checkpoints when it changes."""
+    from hprior_jax.config import differing_fields
+
     old = load_run_config(run_dir)
-    if steps < old.steps:
-        raise ValueError(f"--steps {steps} is below the run's budget {old.steps}; a resumed "
-                         "run can only be extended")
-    new = dataclasses.replace(old, steps=steps)
+    changed = [k for k in differing_fields(old, requested) if k != "out"]
+    refused = [k for k in changed if k not in CHANGEABLE_ON_RESUME]
+    if refused:
+        flags = ", ".join(f"--{k.replace('_', '-')} ({_get(old, k)!r} -> {_get(requested, k)!r})"
+                          for k in refused)
+        raise ValueError(
+            f"--resume continues {run_dir} as it was configured; these cannot change: {flags}. "
+            "A resumed run may change only "
+            f"{', '.join('--' + k.replace('_', '-') for k in CHANGEABLE_ON_RESUME)}; start a "
+            "new run (another --out) for the rest")
+    if not changed:
+        return old, None
+    new = requested
+    if new.steps < old.steps and not old.replay_capacity:
+        new = dataclasses.replace(new, replay_capacity=old.capacity)  # keep the buffer's size
+    if checkpoint_step is not None and new.steps < checkpoint_step:
+        raise ValueError(f"--steps {new.steps} is below step {checkpoint_step} of the run's "
+                         "latest checkpoint")
+    new = dataclasses.replace(new, out=old.out)
     (Path(run_dir) / f"config.steps{old.steps}.json").write_text(
         (Path(run_dir) / "config.json").read_text())
-    (Path(run_dir) / "config.json").write_text(new.to_json() + "\n")
-    return new, old.capacity
+    write_config(run_dir, new, run_info_of(run_dir))
+    return new, old.capacity if new.capacity != old.capacity else None
+
+
+def _get(cfg, dotted: str):
+    for part in dotted.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
 
 
 def _read_json(run_dir: Path) -> dict:
     path = Path(run_dir) / "config.json"
     if not path.exists():
-        raise FileNotFoundError(f"{path} not found: --resume needs a run directory written "
-                                "by `hprior train`")
+        raise FileNotFoundError(f"{path} not found: {run_dir} is not a run directory "
+                                "written by `hprior train`")
     return json.loads(path.read_text())

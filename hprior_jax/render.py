@@ -1,0 +1,75 @@
+"""Offscreen MuJoCo rendering of task states and video files (host side).
+
+Rendering needs an OpenGL backend without a display: OSMesa (Debian: `libosmesa6`, the
+default here) or EGL (`HPRIOR_GL=egl`, a GPU driver's libEGL). The project imports mujoco
+with MUJOCO_GL=disable (MJX needs no GL), so the backend's context class is handed to
+mujoco's renderer here, on first use."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+FIELDS = ("qpos", "qvel", "mocap_pos", "mocap_quat")  # what positions a frame
+
+
+def _install_gl_context() -> None:
+    from mujoco.rendering.classic import gl_context
+
+    if getattr(gl_context, "GLContext", None) is not None:
+        return
+    backend = os.environ.get("HPRIOR_GL", "osmesa")
+    try:
+        if backend == "egl":
+            from mujoco.egl import GLContext
+        else:
+            from mujoco.osmesa import GLContext
+    except (ImportError, AttributeError) as e:
+        raise RuntimeError(
+            f"offscreen rendering needs the {backend} OpenGL library ({e}); on Debian or "
+            "Ubuntu: apt-get install libosmesa6 (or HPRIOR_GL=egl with a GPU driver)") from None
+    gl_context.GLContext = GLContext
+
+
+def render_frames(mj_model: mujoco.MjModel, states: dict[str, np.ndarray], width: int = 320,
+                  height: int = 240, camera: int | str | None = None) -> np.ndarray:
+    """uint8[T, height, width, 3]: one frame per row of `states` (each of FIELDS [T, ...]
+    that the model has), from `camera` (default: the model's first camera, else a free
+    camera looking at the model's centre from three quarters above)."""
+    _install_gl_context()
+    if camera is None and mj_model.ncam:
+        camera = 0
+    elif camera is None:
+        camera = mujoco.MjvCamera()
+        mujoco.mjv_defaultFreeCamera(mj_model, camera)
+        camera.azimuth, camera.elevation = 135.0, -30.0
+        camera.distance *= 0.6
+        if mj_model.nmocap and "mocap_pos" in states:  # MetaWorld: the hand's start
+            camera.lookat[:] = states["mocap_pos"][0, 0]
+            camera.distance *= 0.5
+    data = mujoco.MjData(mj_model)
+    frames = []
+    with mujoco.Renderer(mj_model, height, width) as renderer:
+        for t in range(len(states["qpos"])):
+            for name in FIELDS:
+                if name in states and getattr(data, name).size:
+                    getattr(data, name)[:] = states[name][t]
+            mujoco.mj_forward(mj_model, data)
+            renderer.update_scene(data, camera=camera)
+            frames.append(renderer.render())
+    return np.stack(frames)
+
+
+def write_video(frames: np.ndarray, path: Path, fps: float) -> Path:
+    """MP4 (H.264, playable in browsers) or GIF, by the suffix of `path`."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".gif":
+        iio.imwrite(path, frames, duration=1000 / fps, loop=0)
+    else:
+        iio.imwrite(path, frames, fps=fps, codec="libx264", macro_block_size=8)
+    return path
