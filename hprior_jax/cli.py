@@ -380,6 +380,9 @@ def main(argv: list[str] | None = None) -> int:
             PermissionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before training started (a run saves on its own Ctrl-C)
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -36,8 +36,9 @@ def export_seed(run_dir: Path, out: Path, seed: int | None = None,
         params["reward"] = state.method.reward
     meta = {"format": FORMAT, "task": cfg.task, "algo": cfg.algo, "seed": seed,
             "step": restored.step, "obs_size": engine.env.obs_size,
-            "action_size": engine.env.action_size, "sac": dataclasses.asdict(cfg.sac),
-            "reward": dataclasses.asdict(reward_cfg) if reward_cfg is not None else None,
+            "action_size": engine.env.action_size, "agent_config": dataclasses.asdict(cfg.sac),
+            "reward_config": (dataclasses.asdict(reward_cfg) if reward_cfg is not None
+                              else None),
             "run_dir": str(Path(run_dir).absolute()), "run_info": run_info_of(run_dir)}
     out.mkdir(parents=True, exist_ok=True)
     checkpointer = ocp.StandardCheckpointer()
@@ -63,11 +64,11 @@ def load_reward(path: Path):
     from hprior_jax.networks.reward_ensemble import RewardConfig, mean_reward
 
     meta, params = _read(path)
-    if meta["reward"] is None:
+    if meta["reward_config"] is None:
         raise ValueError(f"{path} is an export of a --algo {meta['algo']} run, which learns "
                          "no reward")
     cfg = RewardConfig(**{k: tuple(v) if isinstance(v, list) else v
-                          for k, v in meta["reward"].items()})
+                          for k, v in meta["reward_config"].items()})
     reward_params = params["reward"]
 
     def reward(obs, action):
@@ -82,7 +83,7 @@ def load_policy(path: Path):
     from hprior_jax.agents.sac import SAC, SACConfig
 
     meta, params = _read(path)
-    sac = SAC(meta["obs_size"], meta["action_size"], SACConfig(**meta["sac"]))
+    sac = SAC(meta["obs_size"], meta["action_size"], SACConfig(**meta["agent_config"]))
     actor = params["actor"]
 
     def policy(obs):

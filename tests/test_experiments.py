@@ -138,6 +138,18 @@ def test_report_on_a_synthetic_results_directory(tmp_path):
             assert (out / "curves" / f"{task}_vs_{axis}.png").stat().st_size > 0
 
 
+def test_report_says_how_many_seeds_each_column_has_when_they_differ(tmp_path):
+    _fake_run(tmp_path, "walk", "sac", {1: [0.1, 10, 20], 2: [0.1, 30, 40]})
+    _fake_run(tmp_path, "walk", "prior", {1: [5, 30, 30], 2: [5, 20, 45]})
+    _fake_run(tmp_path, "walk", "surf", {1: [5, 20, 30]})
+    text = report.make_report(tmp_path, attention=False).read_text()
+    assert "Mean over each column's seeds" in text and "| seeds | 2 | 1 |" in text
+    (tmp_path / "report").rename(tmp_path / "old")
+    (tmp_path / "walk" / "surf").rename(tmp_path / "surf_gone")
+    text = report.make_report(tmp_path, attention=False).read_text()
+    assert "Mean over seeds 1, 2 of" in text and "| seeds |" not in text
+
+
 def test_labels_used_counts_rounds_before_the_evaluation():
     rounds = [(10, 20.0), (20, 40.0)]
     assert [report._labels_used(rounds, s) for s in (5, 10, 15, 20, 25)] == [0, 0, 20, 20, 40]

@@ -338,3 +338,12 @@ def test_bad_input_ends_with_one_clear_line(argv, says, finished, tmp_path, caps
     assert says in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) == 1 or err.startswith("unknown command"), err
     assert sorted(p.name for p in tmp_path.rglob("*")) == listing  # nothing written
+
+
+def test_an_out_without_write_permission_is_refused_by_name(tmp_path, monkeypatch):
+    """(Root ignores permissions, so the check's answer is faked, not the folder's mode.)"""
+    from hprior_jax.loop import run_dir
+
+    monkeypatch.setattr(run_dir.os, "access", lambda path, mode: path != tmp_path)
+    with pytest.raises(run_dir.RunDirError, match=f"no permission to write in {tmp_path}"):
+        run_dir.check_out_dir(tmp_path / "a" / "b")

@@ -200,12 +200,18 @@ def markdown_tables(table, tests, rows) -> str:
     # Table 6 (success, MetaWorld) before Table 7 (returns, DM Control), as the appendix
     for metric, by_task in sorted(table.items(), key=lambda kv: kv[0] != "success"):
         algos = _order({a for t in by_task.values() for a in t})
-        seeds = sorted({r["seed"] for r in rows if r["metric"] == metric})
+        seeds = {a: sorted({r["seed"] for r in rows if r["metric"] == metric
+                            and r["algo"] == a}) for a in algos}
+        same = len({tuple(s) for s in seeds.values()}) == 1
+        which = (f"seeds {', '.join(map(str, seeds[algos[0]]))}" if same else
+                 "each column's seeds (they differ: the `seeds` row counts them)")
         lines += [f"### {TABLE_NAME.get(metric, metric)}", "",
-                  f"Mean over seeds {', '.join(map(str, seeds))} of each seed's normalized "
-                  "score (SAC on the true reward = 1).", "",
+                  f"Mean over {which} of each seed's normalized score (SAC on the true "
+                  "reward = 1).", "",
                   "| Env/Algorithm | " + " | ".join(a.upper() for a in algos) + " |",
                   "|---|" + "---|" * len(algos)]
+        if not same:
+            lines.append("| seeds | " + " | ".join(str(len(seeds[a])) for a in algos) + " |")
         for task, by_algo in sorted(by_task.items()):
             lines.append(f"| {task} | " + " | ".join(_fmt(by_algo.get(a, float("nan")))
                                                     for a in algos) + " |")
