@@ -16,7 +16,8 @@ from hprior_jax.agents.sac import SACConfig
 from hprior_jax.loop import host
 from hprior_jax.loop.engine import Engine
 from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
-from hprior_jax.networks.reward_ensemble import NEXT_EMBEDDING, mean_reward
+from hprior_jax.networks.reward_ensemble import NEXT_EMBEDDING
+from tests.assertions import assert_buffer_holds_learned_reward
 
 BASELINES = ("surf", "rune", "mrn", "bisim")
 SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2,
@@ -126,12 +127,7 @@ def test_rune_bonus_reaches_the_critic_and_nothing_else(runs_of):
     (_, pebble, _, _), (cfg, rune, _, _) = runs_of("pebble"), runs_of("rune")
     np.testing.assert_allclose(_flat(rune.method.reward), _flat(pebble.method.reward),
                                rtol=1e-5, atol=1e-6)
-    size = int(rune.replay.size[0])
-    params = jax.tree.map(lambda x: x[0], rune.method.reward)
-    r_hat = mean_reward(params, rune.replay.obs[0, :size], rune.replay.action[0, :size],
-                        Engine(cfg).method.reward_cfg)
-    np.testing.assert_allclose(rune.replay.reward[0, :size], np.asarray(r_hat), rtol=2e-5,
-                               atol=2e-6)
+    assert_buffer_holds_learned_reward(rune, Engine(cfg).method.reward_cfg)
     assert np.abs(_flat(rune.sac.critic) - _flat(pebble.sac.critic)).max() > 1e-4
 
 
@@ -162,12 +158,7 @@ def test_mrn_meta_steps_replace_sac_steps(runs_of):
     assert method.meta_steps() == [60, 80]  # rounds at 40 and 80: 20 labels < 40 at step 80
     assert _critic_updates(mrn) == _critic_updates(pebble) == (
         cfg.steps - 40 + cfg.pebble.reset_update)
-    size = int(np.asarray(mrn.replay.size)[0])
-    params = jax.tree.map(lambda x: x[0], mrn.method.reward)
-    r = mean_reward(params, mrn.replay.obs[0, :size], mrn.replay.action[0, :size],
-                    method.reward_cfg)
-    np.testing.assert_allclose(np.asarray(mrn.replay.reward[0, :size]), np.asarray(r),
-                               rtol=2e-5, atol=2e-6)
+    assert_buffer_holds_learned_reward(mrn, method.reward_cfg)
     rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
     meta = [r for r in rows if "mrn/outer_loss" in r]
     assert [r["step"] for r in meta] == [60, 60, 80, 80]  # two seeds

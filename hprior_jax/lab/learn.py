@@ -51,7 +51,6 @@ from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle")
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
-_WM_STREAM = 0x574D
 
 
 @dataclass(frozen=True)
@@ -158,7 +157,7 @@ class Lab:
         cfg = self.cfg
         if not cfg.needs_world_model:
             return SeedContext(wm_params=None, profile=jnp.full((self.T,), 1.0 / self.T))
-        k_init, k_pre, k_dyn, k_seg = jax.random.split(jax.random.fold_in(key, _WM_STREAM), 4)
+        k_init, k_pre, k_dyn, k_seg = jax.random.split(jax.random.fold_in(key, wm.RANDOM_STREAM), 4)
         obs, act = train.obs, train.act
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
         train = partial(wm.train, obs_buf=flat(obs), act_buf=flat(act),

@@ -40,7 +40,6 @@ from hprior_jax.prior.attention import pair_credit
 from hprior_jax.prior.loss import PairCredit, prior_term, target_saturation, variant_alpha
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
-_WM_STREAM = 0x574D  # fold_in tag of the world model's random stream
 LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
 
 
@@ -130,7 +129,7 @@ class WorldModelPrior(Extension):
     # World-model randomness is folded out of the keys PEBBLE uses, never split from them, so
     # every PEBBLE draw is unchanged: with λ = 0 a PRIOR run trains exactly PEBBLE's agent.
     def init(self, key):
-        return PriorExtState(wm=wm.init(jax.random.fold_in(key, _WM_STREAM), self.wm_cfg),
+        return PriorExtState(wm=wm.init(jax.random.fold_in(key, wm.RANDOM_STREAM), self.wm_cfg),
                              credit=PairCredit.uniform(self.cfg.pebble.max_feedback,
                                                        self.segment_len),
                              lam=jnp.asarray(self.prior_cfg.lam, jnp.float32))
@@ -139,7 +138,7 @@ class WorldModelPrior(Extension):
         """Pre-training: observation and dynamics model; later: dynamics only (appendix C.3)."""
         p, ext = self.prior_cfg, rs.method.ext
         state, metrics = wm.train(
-            ext.wm, jax.random.fold_in(rs.key, _WM_STREAM), rs.replay.obs, rs.replay.action,
+            ext.wm, jax.random.fold_in(rs.key, wm.RANDOM_STREAM), rs.replay.obs, rs.replay.action,
             rs.replay.size, cfg=self.wm_cfg, episode_len=self.kit.env.episode_length,
             num_steps=p.wm_pretrain_steps if pretrain else p.wm_update_steps,
             observation_model=pretrain, dynamics_model=True)

@@ -52,6 +52,9 @@ _linear_init = nn.initializers.variance_scaling(1.0, "fan_in", "uniform")
 
 DropoutRng = Literal["rbg", "threefry"]
 DROPOUT_RNGS = get_args(DropoutRng)
+# fold_in tag of the world model's random stream (its init, updates and dropout), kept apart
+# from the run's stream so that λ = 0 draws exactly PEBBLE's numbers
+RANDOM_STREAM = 0x574D
 
 
 def dropout_key(key: jax.Array, impl: str) -> jax.Array:
