@@ -30,6 +30,7 @@ commands:
   train      train an agent (hprior train --help for every option)
   eval       evaluate a run's checkpoint per seed (true return, success), optionally a video
   export     a seed's learned reward and policy as a standalone folder (hprior_jax.load_reward)
+  label      label preference queries in a browser (a local web app)
   attention  world-model attention maps of a trained run of a method with a world model
   grid       every (task, algorithm) with its seeds; skips finished runs, resumes the rest
   report     Tables 6-7, paired t-tests, learning curves of a grid's results directory
@@ -209,6 +210,62 @@ def _export(argv: list[str]) -> int:
     return 0
 
 
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def _label(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="hprior label",
+        description="Label preference queries in a browser: a local web app shows each "
+                    "query's two clips side by side; answer with buttons or keys 1 (left), "
+                    "2 (right), 3 (equally good), 0 (can't tell), u (undo). Answers are "
+                    "appended to DIR/answers.jsonl.")
+    parser.add_argument("--dir", required=True, help="the query folder")
+    parser.add_argument("--from-run", default=None,
+                        help="first write queries into --dir: segment pairs from fresh "
+                             "episodes of this run's policy")
+    parser.add_argument("--pairs", type=int, default=10)
+    parser.add_argument("--segment-len", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=None, help="which seed's policy")
+    parser.add_argument("--build-only", action="store_true", help="write the queries, stop")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to serve on; any other than loopback needs a token")
+    parser.add_argument("--port", type=int, default=8765)
+    parser.add_argument("--token", default=None,
+                        help="access token (made up and printed when --host is not loopback)")
+    args = parser.parse_args(argv)
+    from hprior_jax.labelling.store import QueryFolder
+
+    if args.from_run:
+        from hprior_jax.labelling.from_run import queries_from_run
+        from hprior_jax.loop.run_dir import check_out_dir
+        from hprior_jax.setup_jax import enable_compilation_cache
+
+        check_out_dir(Path(args.dir))
+        enable_compilation_cache()
+        ids = queries_from_run(args.from_run, args.dir, args.pairs, args.segment_len,
+                               args.seed)
+        print(f"wrote {len(ids)} queries to {args.dir}", flush=True)
+        if args.build_only:
+            return 0
+    folder = QueryFolder(args.dir)
+    token = args.token
+    if token is None and args.host not in LOOPBACK:
+        import secrets
+
+        token = secrets.token_urlsafe(16)
+    import uvicorn
+
+    from hprior_jax.labelling.app import make_app
+
+    shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+    url = f"http://{shown}:{args.port}/" + (f"?token={token}" if token else "")
+    print(f"labelling {args.dir}: open {url} (Ctrl-C stops; answers are saved as given)",
+          flush=True)
+    uvicorn.run(make_app(folder, token), host=args.host, port=args.port, log_level="warning")
+    return 0
+
+
 def _attention(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="hprior attention",
@@ -369,7 +426,8 @@ def main(argv: list[str] | None = None) -> int:
         print(version_string())
         return 0
     command, rest = argv[0], argv[1:]
-    commands = {"train": _train, "eval": _eval, "export": _export, "attention": _attention, "grid": _grid, "report": _report,
+    commands = {"train": _train, "eval": _eval, "export": _export, "label": _label,
+                "attention": _attention, "grid": _grid, "report": _report,
                 "reward-lab": _reward_lab, "tasks": _tasks, "methods": _methods}
     if command not in commands:
         print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)

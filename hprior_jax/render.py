@@ -33,22 +33,34 @@ def _install_gl_context() -> None:
     gl_context.GLContext = GLContext
 
 
+def default_camera(mj_model: mujoco.MjModel, lookat: np.ndarray | None = None):
+    """The model's first camera, else a free camera from three quarters above, looking at
+    `lookat` (closer) or the model's centre."""
+    if mj_model.ncam:
+        return 0
+    camera = mujoco.MjvCamera()
+    mujoco.mjv_defaultFreeCamera(mj_model, camera)
+    camera.azimuth, camera.elevation = 135.0, -30.0
+    camera.distance *= 0.6
+    if lookat is not None:
+        camera.lookat[:] = lookat
+        camera.distance *= 0.5
+    return camera
+
+
+def hand_start(states: dict[str, np.ndarray]) -> np.ndarray | None:
+    """MetaWorld's mocap (hand) target at a segment's first step: where to look."""
+    pos = states.get("mocap_pos")
+    return None if pos is None or not pos.size else pos[0, 0]
+
+
 def render_frames(mj_model: mujoco.MjModel, states: dict[str, np.ndarray], width: int = 320,
-                  height: int = 240, camera: int | str | None = None) -> np.ndarray:
+                  height: int = 240, camera=None) -> np.ndarray:
     """uint8[T, height, width, 3]: one frame per row of `states` (each of FIELDS [T, ...]
-    that the model has), from `camera` (default: the model's first camera, else a free
-    camera looking at the model's centre from three quarters above)."""
+    that the model has), from `camera` (default: `default_camera` at the hand's start)."""
     _install_gl_context()
-    if camera is None and mj_model.ncam:
-        camera = 0
-    elif camera is None:
-        camera = mujoco.MjvCamera()
-        mujoco.mjv_defaultFreeCamera(mj_model, camera)
-        camera.azimuth, camera.elevation = 135.0, -30.0
-        camera.distance *= 0.6
-        if mj_model.nmocap and "mocap_pos" in states:  # MetaWorld: the hand's start
-            camera.lookat[:] = states["mocap_pos"][0, 0]
-            camera.distance *= 0.5
+    if camera is None:
+        camera = default_camera(mj_model, hand_start(states))
     data = mujoco.MjData(mj_model)
     frames = []
     with mujoco.Renderer(mj_model, height, width) as renderer:

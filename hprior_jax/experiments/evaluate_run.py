@@ -45,8 +45,10 @@ def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
     return rows, videos
 
 
-def episode_states(engine, actor_params, key: jax.Array) -> dict[str, np.ndarray]:
-    """One deterministic episode's physics states [T + 1, ...] (the first after reset)."""
+def episode_states(engine, actor_params, keys: jax.Array,
+                   deterministic: bool = True) -> dict[str, np.ndarray]:
+    """Whole episodes' physics states [N, T + 1, ...] (the first after reset), one per key
+    in `keys` [N, 2], with the deterministic (tanh of the mean) or the sampling policy."""
     from hprior_jax.envs import make_env
     from hprior_jax.render import FIELDS
 
@@ -55,24 +57,25 @@ def episode_states(engine, actor_params, key: jax.Array) -> dict[str, np.ndarray
     def snapshot(state):
         return {k: getattr(state.task.data, k)[0] for k in FIELDS}
 
-    def body(state, t):
-        action = engine.sac.act(actor_params, state.task.obs, key, deterministic=True)
-        state, _ = env.advance(state, action, t)
-        return state, snapshot(state)
+    def one(key):
+        def body(state, t):
+            action = engine.sac.act(actor_params, state.task.obs, jax.random.fold_in(key, t),
+                                    deterministic=deterministic)
+            state, _ = env.advance(state, action, t)
+            return state, snapshot(state)
 
-    @jax.jit
-    def rollout(key):
         first = env.reset(key)
         _, rest = jax.lax.scan(body, first, jnp.arange(env.episode_length))
         return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), snapshot(first), rest)
 
-    return jax.device_get(rollout(key))
+    return jax.device_get(jax.jit(jax.vmap(one))(keys))
 
 
 def _video(engine, actor_params, seed: int, step: int, run_dir: Path) -> Path:
     from hprior_jax.render import render_frames, write_video
 
     key = jax.random.fold_in(jax.random.PRNGKey(seed), 0x5EED0000 + step)
-    frames = render_frames(engine.task.mj_model, episode_states(engine, actor_params, key))
+    states = jax.tree.map(lambda x: x[0], episode_states(engine, actor_params, key[None]))
+    frames = render_frames(engine.task.mj_model, states)
     return write_video(frames, run_dir / "videos" / f"step{step}_seed{seed}.mp4",
                        fps=1.0 / engine.task.control_timestep)

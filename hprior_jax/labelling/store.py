@@ -1,0 +1,182 @@
+"""A query folder: what is asked (written by a producer) and what was answered (by the app).
+
+    DIR/queries.jsonl      one query per line: {"id", "round", "task", "fps"}
+    DIR/segments/<id>.npz  the two segments' physics states (qpos1, qpos2, ... [T, ...])
+    DIR/clips/<id>_<1|2>.mp4   rendered on first request, then served from here
+    DIR/answers.jsonl      one record per answer or undo, appended and fsync'd
+
+Answers are never rewritten: the current answer of a query is its last record unless an undo
+followed it, so a restart replays the file and loses nothing, and two browsers append to the
+same file under one lock (a process-wide lock: one server process per folder)."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ANSWERS = ("left", "right", "equal", "skip")
+# B-Pref labels (hprior_jax/pbrl/teacher.py): 0 = segment 1 preferred, 1 = segment 2,
+# -1 = equally preferable; a skipped query is dropped (valid = False)
+LABEL_OF = {"left": 0, "right": 1, "equal": -1, "skip": 0}
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")  # no path separators, dots or spaces
+
+
+class LabelError(ValueError):
+    """A request the folder refuses: `status` is the HTTP status the app answers with."""
+
+    def __init__(self, message: str, status: int = 400):
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class Query:
+    id: str
+    round: int
+    task: str
+    fps: float
+
+
+def write_queries(folder: Path, task: str, round_: int, segments: list[tuple[dict, dict]],
+                  fps: float, first_index: int = 0) -> list[str]:
+    """Adds one round of queries: `segments[i]` = (states of segment 1, of segment 2), each
+    {field: array [T, ...]} (`hprior_jax.render.FIELDS`). Returns their ids."""
+    folder = Path(folder)
+    (folder / "segments").mkdir(parents=True, exist_ok=True)
+    ids = []
+    with open(folder / "queries.jsonl", "a") as f:
+        for i, (one, two) in enumerate(segments, start=first_index):
+            qid = f"r{round_}-q{i:04d}"
+            arrays = {f"{k}1": v for k, v in one.items()} | {f"{k}2": v for k, v in two.items()}
+            np.savez(folder / "segments" / f"{qid}.npz", **arrays)
+            f.write(json.dumps({"id": qid, "round": round_, "task": task, "fps": fps}) + "\n")
+            ids.append(qid)
+        f.flush()
+        os.fsync(f.fileno())
+    return ids
+
+
+class QueryFolder:
+    def __init__(self, folder: Path):
+        self.dir = Path(folder)
+        if not (self.dir / "queries.jsonl").exists():
+            raise FileNotFoundError(f"{self.dir}/queries.jsonl not found: {self.dir} is not a "
+                                    "query folder (make one with `hprior label --from-run`)")
+        self._lock = threading.Lock()
+        self._answers_path = self.dir / "answers.jsonl"
+
+    # -- what is asked ------------------------------------------------------------------
+    def queries(self) -> list[Query]:
+        lines = (self.dir / "queries.jsonl").read_text().splitlines()
+        return [Query(**json.loads(line)) for line in lines if line.strip()]
+
+    def query(self, qid: str) -> Query:
+        if not isinstance(qid, str) or not ID_PATTERN.match(qid):
+            raise LabelError(f"bad query id {qid!r}: ids are letters, digits, '-' and '_'")
+        found = next((q for q in self.queries() if q.id == qid), None)
+        if found is None:
+            raise LabelError(f"unknown query id {qid!r}", status=404)
+        return found
+
+    def segment_states(self, qid: str, side: int) -> dict[str, np.ndarray]:
+        self.query(qid)
+        with np.load(self.dir / "segments" / f"{qid}.npz") as z:
+            return {k[:-1]: z[k] for k in z.files if k.endswith(str(side))}
+
+    # -- what was answered --------------------------------------------------------------
+    def _records(self) -> list[dict]:
+        if not self._answers_path.exists():
+            return []
+        out = []
+        for line in self._answers_path.read_text().splitlines():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:  # a torn last line from a killed server
+                continue
+        return out
+
+    def answers(self) -> dict[str, dict]:
+        """{query id: its current answer record}, replaying answers and undos in order."""
+        current: dict[str, dict] = {}
+        for rec in self._records():
+            if rec.get("undo"):
+                current.pop(rec["id"], None)
+            else:
+                current[rec["id"]] = rec
+        return current
+
+    def answer(self, qid: str, answer: str, labeller: str) -> bool:
+        """Records an answer; True if written, False for a repeat of the current answer (a
+        double click or a retried request). A different answer to an answered query is
+        refused: undo it first."""
+        self.query(qid)
+        if answer not in ANSWERS:
+            raise LabelError(f"answer {answer!r}: choose one of {', '.join(ANSWERS)}")
+        labeller = _labeller(labeller)
+        with self._lock:
+            previous = self.answers().get(qid)
+            if previous is not None:
+                if previous["answer"] == answer:
+                    return False
+                raise LabelError(f"query {qid} is already answered {previous['answer']!r} "
+                                 f"(by {previous['labeller']}); undo it first", status=409)
+            self._append({"id": qid, "answer": answer, "labeller": labeller,
+                          "time": time.time()})
+        return True
+
+    def undo_last(self, labeller: str) -> str | None:
+        """Undoes `labeller`'s most recent current answer; returns its query id (None if
+        they have none)."""
+        labeller = _labeller(labeller)
+        with self._lock:
+            current = self.answers()
+            mine = [r for r in current.values() if r["labeller"] == labeller]
+            if not mine:
+                return None
+            last = max(mine, key=lambda r: r["time"])
+            self._append({"id": last["id"], "undo": True, "labeller": labeller,
+                          "time": time.time()})
+            return last["id"]
+
+    def _append(self, record: dict) -> None:
+        # one write of a whole line, then fsync: the page hears "saved" only after this
+        with open(self._answers_path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def next_query(self) -> Query | None:
+        done = self.answers()
+        return next((q for q in self.queries() if q.id not in done), None)
+
+    def progress(self, round_: int | None = None) -> dict:
+        """Answered / asked, of one round (default: the latest)."""
+        queries = self.queries()
+        if round_ is None:
+            round_ = max((q.round for q in queries), default=0)
+        asked = [q.id for q in queries if q.round == round_]
+        done = self.answers()
+        return {"round": round_, "asked": len(asked),
+                "answered": sum(q in done for q in asked)}
+
+    def labels(self, ids: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        """B-Pref (labels int32 [N], valid bool [N]) of `ids`; every one must be answered."""
+        done = self.answers()
+        missing = [q for q in ids if q not in done]
+        if missing:
+            raise LabelError(f"{len(missing)} queries are not answered yet: {missing[:3]}...")
+        answers = [done[q]["answer"] for q in ids]
+        return (np.array([LABEL_OF[a] for a in answers], np.int32),
+                np.array([a != "skip" for a in answers]))
+
+
+def _labeller(name) -> str:
+    if not isinstance(name, str) or not re.fullmatch(r"[\w .@-]{1,64}", name):
+        raise LabelError(f"labeller {name!r}: give a name of 1-64 letters, digits, ' .@-_'")
+    return name

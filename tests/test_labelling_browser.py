@@ -1,0 +1,93 @@
+"""The labelling page in a real browser: headless Chromium (Debian's `chromium` and
+`chromium-driver`, installed by .ci/run) driven by Selenium loads the page served by uvicorn,
+sees both clips play, answers with a click and with a key, reloads and finds its progress.
+The screenshot lands in benchmarks/results/labelling_page.png."""
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.test_labelling import folder  # noqa: F401  (the fixture: three cheetah queries)
+
+CHROMEDRIVER = shutil.which("chromedriver")
+SCREENSHOT = Path(__file__).resolve().parent.parent / "benchmarks" / "results" / "labelling_page.png"
+
+
+@pytest.fixture()
+def server(folder):  # noqa: F811
+    import uvicorn
+
+    from hprior_jax.labelling.app import make_app
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    srv = uvicorn.Server(uvicorn.Config(make_app(folder), host="127.0.0.1", port=port,
+                                        log_level="warning"))
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    while not srv.started:
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}/", folder
+    srv.should_exit = True
+    thread.join(10)
+
+
+@pytest.fixture()
+def browser():
+    if CHROMEDRIVER is None:
+        pytest.fail("chromedriver not found: apt-get install chromium chromium-driver "
+                    "(.ci/run does)")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
+                "--autoplay-policy=no-user-gesture-required", "--window-size=1000,720"):
+        options.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    yield driver
+    driver.quit()
+
+
+def _wait(predicate, timeout=20.0):
+    end = time.time() + timeout
+    while time.time() < end:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError("timed out")
+
+
+def _playing(driver, vid):
+    return driver.execute_script(
+        f"const v = document.getElementById('{vid}');"
+        "return v.readyState >= 2 && !v.paused && v.currentTime > 0 && v.videoWidth > 0;")
+
+
+def test_a_person_labels_in_a_browser(server, browser):
+    from selenium.webdriver.common.by import By
+
+    url, folder = server
+    browser.get(url)
+    _wait(lambda: "r1-q0000" in browser.find_element(By.ID, "where").text)
+    _wait(lambda: _playing(browser, "left") and _playing(browser, "right"))
+    assert "0 of 3 answered" in browser.find_element(By.ID, "progress").text
+    SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+    browser.save_screenshot(str(SCREENSHOT))
+    # a click, then a key
+    browser.find_element(By.CSS_SELECTOR, "[data-answer=right]").click()
+    _wait(lambda: "r1-q0001" in browser.find_element(By.ID, "where").text)
+    browser.find_element(By.TAG_NAME, "body").send_keys("1")
+    _wait(lambda: "r1-q0002" in browser.find_element(By.ID, "where").text)
+    answers = folder.answers()
+    assert {k: v["answer"] for k, v in answers.items()} == {"r1-q0000": "right",
+                                                            "r1-q0001": "left"}
+    # a reload resumes where the labelling stopped
+    browser.refresh()
+    _wait(lambda: "2 of 3 answered" in browser.find_element(By.ID, "progress").text)
+    assert "r1-q0002" in browser.find_element(By.ID, "where").text
