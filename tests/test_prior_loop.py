@@ -147,5 +147,15 @@ def test_attention_maps_from_a_trained_run(runs, tmp_path):
     assert all(p.stat().st_size > 5000 for p in pngs)
     with pytest.raises(ValueError, match="choose 0..19"):
         attention_maps_for_run(run_dir, pair=20)
+    # the true reward drawn beside α is the segment's: it orders every pair as the oracle did
+    from hprior_jax.experiments.attention_map import segment_true_reward
+
+    _, rs, _ = runs["prior"]
+    seed0 = jax.tree.map(lambda x: np.asarray(x)[0], rs)
+    prefs = seed0.method.prefs
+    for i in range(int(prefs.count)):
+        r1, r2 = (segment_true_reward(seed0.replay, o[i]) for o in (prefs.obs1, prefs.obs2))
+        assert len(r1) == len(r2) == prefs.obs1.shape[1]
+        assert int(prefs.labels[i]) == int(r1.sum() < r2.sum())
     with pytest.raises(ValueError, match="world model"):
         attention_maps_for_run(prepare_run_dir(_cfg(tmp_path, "pebble", algo="pebble")))

@@ -82,7 +82,8 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
     restored = restore_run(run_dir)
     cfg, engine, step = restored.cfg, restored.engine, restored.step
     seed = cfg.seeds[0] if seed is None else seed
-    ms = restored.of_seed(seed).method
+    state = restored.of_seed(seed)
+    ms = state.method
     prefs, wm_params = ms.prefs, ms.ext.wm.params
     count = int(prefs.count)
     if not 0 <= pair < count:
@@ -99,7 +100,21 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
         label = int(prefs.labels[pair])
         title = (f"{cfg.task} seed {seed} step {step}: pair {pair}, segment {side} "
                  f"(teacher label {label})")
+        true_reward = segment_true_reward(state.replay, np.asarray(obs[pair]))
         paths.append(plot_attention_map(np.asarray(rows), np.asarray(alpha),
-                                        out / f"seed{seed}_pair{pair}_seg{side}.png", title))
+                                        out / f"seed{seed}_pair{pair}_seg{side}.png", title,
+                                        true_reward=true_reward))
     return paths
+
+
+def segment_true_reward(replay, seg_obs: np.ndarray) -> np.ndarray | None:
+    """The true per-step reward of a stored segment, found in the replay buffer by its
+    observations (the preference store keeps none: only the teacher reads the true reward);
+    None if the segment is not there (an overwritten row)."""
+    obs = np.asarray(replay.obs)[:int(replay.size)]
+    t = len(seg_obs)
+    for start in np.flatnonzero(np.all(obs == seg_obs[0], axis=-1)):
+        if start + t <= len(obs) and np.array_equal(obs[start:start + t], seg_obs):
+            return np.asarray(replay.true_reward)[start:start + t]
+    return None
 
