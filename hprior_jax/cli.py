@@ -50,28 +50,19 @@ def _train(argv: list[str]) -> int:
     help_asked = "-h" in rest or "--help" in rest
 
     from hprior_jax import presets, provenance
-    from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.loop import host, run_dir as run_dirs
     from hprior_jax.loop.engine import Engine
     from hprior_jax.setup_jax import enable_compilation_cache
 
     if known.resume and not help_asked:
+        # the flags over the run's own config: resume_config refuses what may not change
+        # (--task, --algo and --preset included: they are config fields too)
         run_dir = Path(known.resume)
         saved = run_dirs.load_run_config(run_dir)
-        for flag, value in (("task", known.task), ("algo", known.algo), ("preset", known.preset)):
-            if value is not None and value != getattr(saved, flag):
-                raise ValueError(f"--resume continues {run_dir}, a {saved.algo} run on "
-                                 f"{saved.task} ({saved.preset}); --{flag} {value} cannot change "
-                                 "it: start a new run (another --out)")
         default = (saved if known.teacher is None
                    else presets.with_teacher(saved, known.teacher))
         requested = _parse_config(default, _tyro_args(argv))
-        ckpt = Checkpointer(run_dir / "checkpoints")
-        try:
-            step = ckpt.latest_step()
-        finally:
-            ckpt.close()
-        cfg, saved_capacity = run_dirs.resume_config(run_dir, requested, step)
+        cfg, saved_capacity = run_dirs.resume_config(run_dir, requested)
         enable_compilation_cache()
         engine = Engine(cfg)
     else:

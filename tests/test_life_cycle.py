@@ -143,7 +143,7 @@ def test_a_resume_hits_the_compilation_cache(tmp_path):
 
 def test_resume_applies_budget_and_cadences_and_refuses_the_rest(finished, capsys):
     before = (finished / "config.json").read_text()
-    for flags, named in ((["--algo", "pebble"], "--algo pebble"),
+    for flags, named in ((["--algo", "pebble"], "--algo ('sac' -> 'pebble')"),
                          (["--sac.lr", "0.1"], "--sac.lr (0.0003 -> 0.1)"),
                          (["--seeds", "3"], "--seeds"),
                          (["--steps", "20"], "below step 80")):
@@ -310,7 +310,8 @@ def test_grid_and_train_share_the_preset_flag_and_default(tmp_path, monkeypatch)
     # resume
     (["train", "--resume", "{missing}"], "is not a run directory"),
     (["train", "--resume", "{busy}"], "is not a run directory"),
-    (["train", "--resume", "{run}", "--task", "cheetah_run"], "--task cheetah_run cannot"),
+    (["train", "--resume", "{run}", "--task", "cheetah_run"],
+     "--task ('toy_point' -> 'cheetah_run')"),
     (["train", "--resume", "{run}", "--sac.batch-size", "4"], "these cannot change"),
     # the other commands
     (["eval", "--run", "{missing}"], "is not a run directory"),

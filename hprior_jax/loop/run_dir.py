@@ -97,11 +97,11 @@ def legacy_checkpoint_name(name: str) -> str | None:
 CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes")
 
 
-def resume_config(run_dir: Path, requested: RunConfig, checkpoint_step: int | None
-                  ) -> tuple[RunConfig, int | None]:
+def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int | None]:
     """The run's config with the changes `requested` may make on resume (other changes are
     refused, naming them); writes it, keeping the previous config.json beside it. Returns
     the config and the replay capacity of the run's checkpoints when it changes."""
+    from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.config import differing_fields
 
     old = load_run_config(run_dir)
@@ -117,6 +117,11 @@ def resume_config(run_dir: Path, requested: RunConfig, checkpoint_step: int | No
             "new run (another --out) for the rest")
     if not changed:
         return old, None
+    ckpt = Checkpointer(Path(run_dir) / "checkpoints")
+    try:
+        checkpoint_step = ckpt.latest_step()
+    finally:
+        ckpt.close()
     new = requested
     if new.steps < old.steps and not old.replay_capacity:
         new = dataclasses.replace(new, replay_capacity=old.capacity)  # keep the buffer's size
