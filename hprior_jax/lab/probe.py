@@ -9,7 +9,7 @@ that ends just before the reveal should then put its mass on t*, not on the last
     obs_t = [gate_t, reveal_t, value_t, sin(ω t + φ)]     act_t ~ U[-1, 1]
     gate_t = 1[t = t*], reveal_t = 1[t = t* + delay], value_t = a_{t*} · reveal_t
 
-    python -m hprior_jax.lab.probe --steps 3000        # prints the numbers
+    python -m hprior_jax.lab.probe --steps 3000 [--delay 30]   # prints the numbers as JSON
 """
 from __future__ import annotations
 
@@ -127,9 +127,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=ProbeConfig.steps)
     parser.add_argument("--episodes", type=int, default=ProbeConfig.episodes)
+    parser.add_argument("--delay", type=int, default=ProbeConfig.delay)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    out = run_probe(ProbeConfig(episodes=args.episodes, steps=args.steps), args.seed)
+    out = run_probe(ProbeConfig(episodes=args.episodes, steps=args.steps, delay=args.delay),
+                    args.seed)
     print(json.dumps(out, indent=2))
 
 
