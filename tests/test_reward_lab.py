@@ -177,6 +177,8 @@ def test_reward_quality_matches_numpy_and_scipy(data):
     assert perfect["heldout_accuracy"] == 1.0 and perfect["pearson"] == pytest.approx(1.0)
 
 
+# -m slow for CI time (70 s of one worker): the lab's pieces stay in the fast suite above
+@pytest.mark.slow
 def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, capsys):
     """`hprior reward-lab` end to end on the toy task: a SAC run's replay buffer becomes the
     cached dataset, two rules x two seeds train, and the report's files are written; a second
