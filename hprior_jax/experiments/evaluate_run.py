@@ -74,7 +74,9 @@ def episode_states(engine, actor_params, keys: jax.Array,
 def _video(engine, actor_params, seed: int, step: int, run_dir: Path) -> Path:
     from hprior_jax.render import render_frames, write_video
 
-    key = jax.random.fold_in(jax.random.PRNGKey(seed), 0x5EED0000 + step)
+    from hprior_jax.loop.engine import eval_key
+
+    key = eval_key(seed, step)
     states = jax.tree.map(lambda x: x[0], episode_states(engine, actor_params, key[None]))
     frames = render_frames(engine.task.mj_model, states)
     return write_video(frames, run_dir / "videos" / f"step{step}_seed{seed}.mp4",

@@ -152,11 +152,15 @@ class Engine:
         return self.method.run_event(rs, step)
 
     def run_eval(self, rs: RunState, seeds, step: int):
-        # keys derived from (seed, step) only: evaluation never touches the training stream
-        keys = jnp.stack([jax.random.fold_in(jax.random.PRNGKey(s), 0x5EED0000 + step)
-                          for s in seeds])
+        keys = jnp.stack([eval_key(s, step) for s in seeds])
         fn = jax.jit(jax.vmap(self.evaluate))
         return self.compile("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
+
+
+def eval_key(seed: int, step: int) -> jax.Array:
+    """The evaluation key of `seed` at `step`: derived from (seed, step) only, so evaluation
+    never touches the training stream and any tool can repeat a run's evaluation."""
+    return jax.random.fold_in(jax.random.PRNGKey(seed), 0x5EED0000 + step)
 
 
 def _abstract(x) -> jax.ShapeDtypeStruct:
