@@ -124,7 +124,7 @@ def _policy_obs(task, name, obs, info):
     return obs
 
 
-def run_port_c(task, name: str, episodes: int, seed: int) -> dict:
+def run_port_c(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> dict:
     """The port's scene stepped by C MuJoCo with the port's step logic (float64)."""
     policy = scripted_policy(name)
     m = copy.copy(task.mj_model)
@@ -160,7 +160,7 @@ def run_port_c(task, name: str, episodes: int, seed: int) -> dict:
         d.ctrl[:] = np.asarray(st.data.ctrl)
         obs, prev = np.asarray(st.obs), info["prev_obs"]
         ret, fs, lo, hi = 0.0, None, np.inf, -np.inf
-        for t in range(STEPS):
+        for t in range(steps):
             a = np.clip(policy.get_action(_policy_obs(task, name, obs, info)), -1, 1)
             d.mocap_pos[mocap_id] = np.clip(d.mocap_pos[mocap_id] + a[:3] / 100, low, high)
             d.ctrl[:] = [a[3], -a[3]]

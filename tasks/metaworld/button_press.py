@@ -22,10 +22,16 @@ add ~34 contact slots to the first port's 16). The first port had only claws x c
 button to -0.358 and through the success zone (success at step 500: 0% against 100%).
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks button_press` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port): return 454 vs 445 (x1.02), success
-at step 500 100% vs 100%, button down to -0.101 vs -0.084. Targets missed: the excursion
-(1.7 cm past metaworld's, target 1 cm) and the hand-mocap distance (0.141 vs 0.223 m, x0.63,
-target x0.7-1.3: the free hand is pushed back less than the arm-held one).
+scripted policy, 20 episodes a side, 500 steps, MJX port): success at step 500 100% vs 100%,
+button down to -0.087 vs -0.084, hand-mocap 0.234 vs 0.223 m (x1.05). Target missed: the
+return, 592 vs 445 (x1.33); the port presses earlier (first success at step 50 vs 63) and
+the reward pays up to 10 per step once the fingers are within 5 cm of the pressed button.
+The wrist's shape is part of it: with metaworld's arm, C MuJoCo, one episode from
+metaworld's reset state, the return is 461 with metaworld's wrist mesh (metaworld: 461), 532
+with a 24-point hull and 564 with the box; on the free hand a 12- or 24-point hull gives
+x1.23 (10 episodes, C MuJoCo), not enough to keep its cost. Before the hand kept metaworld's
+constraint weights (sawyer.py): return x1.02 but the button went to -0.101 and hand-mocap
+x0.63.
 """
 from __future__ import annotations
 

@@ -10,12 +10,12 @@ hand, sawyer.py). The observed handle pose is that of metaworld's visual mesh ge
 "handle", recomputed from `door_link`'s pose (the mesh itself is deleted).
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks door_open` (metaworld's scripted
-policy, 20 episodes a side, 500 steps, MJX port): return 4464 vs 4485 (x1.00). Targets
-missed: success at step 500 0% vs 100% (the door swings past the target: down to -2.16 rad
-vs metaworld's -1.82, the free hand pushes through the panel-wall stop that holds in
-metaworld; the first port, without the stop, reached -2.45 with success 20%) and the
-hand-mocap distance (0.103 vs 0.189 m, x0.55). With metaworld's arm (`arm=True`) the stop
-holds in C MuJoCo (-1.80), but that scene is not usable under MJX yet (sawyer.py).
+policy, 20 episodes a side, 500 steps, MJX port): all four targets met. Return 4303 vs 4485
+(x0.96), success at step 500 95% vs 100%, door down to -1.80 vs -1.82 rad (the panel-wall
+stop holds), hand-mocap 0.197 vs 0.189 m (x1.04). Before the hand kept metaworld's
+constraint weights (sawyer.py) the free hand's 6x stiffer weld pushed the door through that
+stop to -2.16 rad and past the success radius (success at step 500 0%); the first port,
+without the stop, reached -2.45.
 """
 from __future__ import annotations
 

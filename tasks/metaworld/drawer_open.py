@@ -8,14 +8,11 @@ limit alone, which the push overpowers in metaworld too (-0.203; range [-0.16, 0
 The arm is replaced by the free hand (sawyer.py).
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks drawer_open` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port): no target met. Return 3243 vs
-4049 (x0.80); success at step 500 0% vs 100%; drawer out to -0.262 vs -0.203 (5.9 cm past
-metaworld's, target 1 cm); hand-mocap 0.034 vs 0.086 m (x0.40). The cause is the free hand:
-metaworld's arm (joint damping, inertia) pushes the handle less hard, so the limit holds at
--0.20 and the handle ends at the target; the free hand drives the drawer 6 cm further, past
-the success radius. With metaworld's arm kept (`arm=True`), C MuJoCo, 4 episodes: return
-x1.00, success 100%, -0.203, hand-mocap x1.00, all targets met; that scene is not usable
-under MJX yet (sawyer.py).
+scripted policy, 20 episodes a side, 500 steps, MJX port): all four targets met. Return 4056
+vs 4049 (x1.00), success at step 500 100% vs 100%, drawer out to -0.2026 vs -0.2026, hand-mocap
+0.085 vs 0.086 m (x0.98). Before the hand kept metaworld's constraint weights (sawyer.py)
+the free hand's 6x stiffer weld dragged the drawer to -0.262, past the success radius
+(success at step 500 0%, return x0.80).
 """
 from __future__ import annotations
 

@@ -6,21 +6,33 @@ Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`):
     `hand` subtree on a free joint and keep metaworld's mocap weld (solref 0.02 1, anchor 0,
     identity relpose, torquescale 5). The free hand gets mass 1 kg / inertia 2e-3 and
     gravity compensation on the whole gripper, so at rest it sits on the mocap target
-    (metaworld's hand rests within 5 mm of it, held up by the arm). What this changes, in
-    C MuJoCo, metaworld's scripted policy, 3 episodes of button_press with the contacts
-    below: metaworld's arm-held hand trails the mocap by 0.21 m on average (it is blocked by
-    the button box while the mocap runs on), the free hand by 0.12 m.
+    (metaworld's hand rests within 5 mm of it, held up by the arm).
+  * Every kept body and joint keeps metaworld's compiled *inverse weights*
+    (`body_invweight0`, `dof_invweight0`; `_copy_invweights`). MuJoCo and MJX scale each soft
+    constraint's force by these compile-time numbers, so they decide how hard the mocap weld
+    pulls the hand and how hard the gripper presses: the free hand's own weight (0.97 against
+    metaworld's 6.1) made the weld 6x stiffer, and the hand overpowered the drawer's and
+    the door's soft stops (drawer -0.262 vs metaworld's -0.203, door -2.16 vs -1.82 rad).
+    The wrist collider hangs on a massless child body named `right_hand`, rigid on the hand,
+    so its contacts keep the weight of the arm link that carries the wrist in metaworld
+    (0.67). With these weights drawer_open, door_open and window_open meet all four
+    targets below. What the weights do not give back is the arm's inertia and joint
+    damping: over the first 60 steps (reaching, no contact) metaworld's hand trails the
+    mocap by 26-60% more than the free hand's (4 tasks, metaworld's mocap path replayed in
+    C MuJoCo). A weld damping ratio of 1.2 instead of 1, with the hand's weight scaled by
+    1/1.2^2 to keep the static pull, matches that lag within 12% on the same 4 tasks, but
+    cost window_open's last-step success (60% vs 100%, 10 episodes, C MuJoCo), so
+    metaworld's weld is kept as it is.
     `arm=True` keeps metaworld's arm instead: its joints with damping, armature and limits,
     link inertias and the weld exactly as metaworld compiles them (joint-less bodies that
     nothing reads are fused into their parents, world-fixed ones deleted). In C MuJoCo that
-    scene with the contacts below reproduces metaworld closely (button_press: hand-mocap
-    0.24 vs 0.21 m, button -0.083 vs -0.084; drawer_open all four targets met; with
-    metaworld's wrist mesh in place of the box, window_open's and button_press's scripted
-    returns equal metaworld's to 4 digits). Under MJX on this 2-core CPU it is not usable
-    yet: `jit(mjx.kinematics)` 2.2 ms, one B=1 step 6.3 ms (38 s to compile), and
-    compiling the vmapped batch-64 env step did not finish in 8 minutes (2026-12-01, with
-    another job on the second core; the free-hand button_press compiles in 28-64 s). So
-    the free hand stays the default.
+    scene reproduces metaworld closely (button_press: hand-mocap 0.24 vs 0.21 m, button
+    -0.083 vs -0.084; drawer_open all four targets met; with metaworld's wrist mesh in
+    place of the box, window_open's and button_press's scripted returns equal metaworld's
+    to 4 digits). Under MJX on this 2-core CPU it is not usable yet: `jit(mjx.kinematics)`
+    2.2 ms, one B=1 step 6.3 ms (38 s to compile), and compiling the vmapped batch-64 env
+    step did not finish in 8 minutes (2026-12-01, with another job on the second core; the
+    free-hand button_press compiles in 28-64 s). So the free hand stays the default.
   * Visual-only geoms (contype = conaffinity = 0, all meshes), meshes, textures and materials
     are deleted (with the arm, so are collision geoms that no pair below uses); every body
     keeps its compiled mass and inertia (set explicitly), so the dynamics of what remains are
@@ -180,8 +192,8 @@ def _wrist_hull_points(model, data, g, body, k):
     return hull[chosen]
 
 
-def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
-                ) -> tuple[mujoco.MjModel, dict]:
+def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box",
+                metaworld_invweights: bool = True) -> tuple[mujoco.MjModel, dict]:
     """The simplified MuJoCo model of a metaworld scene (see module docstring).
 
     arm=True: metaworld's arm kept with its joints, inertias and damping (only its geoms go);
@@ -190,7 +202,9 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
     bounding box in the hand's axes), an int k (a convex mesh on k of its hull vertices), or
     "mesh" (the original 6693-vertex mesh, and paired cylinders stay cylinders: metaworld's
     exact shapes for C MuJoCo diagnostics only; MJX has no cylinder-box collision and the
-    mesh is far too big for it)."""
+    mesh is far too big for it).
+    metaworld_invweights: give every kept body and joint metaworld's compiled inverse weights
+    (see `_copy_invweights`); False keeps the simplified scene's own (the first ports)."""
     path = metaworld_xml_path(scene.xml)
     spec = mujoco.MjSpec.from_file(path)
     # name every geom so pairs can refer to it
@@ -245,11 +259,11 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
     for pair in scene.extra_pairs:
         pair_names.append(tuple(resolve(n) for n in pair))
 
-    # the wrist collider: metaworld's gripper-base mesh -> its bounding box, on the body that
-    # carries it here (`right_hand` with the arm, else the re-rooted `hand`, rigidly the same)
-    wrist_body = "right_hand" if arm else "hand"
+    # the wrist collider: metaworld's gripper-base mesh -> its bounding box, on the arm's
+    # `right_hand` (without the arm: a rigid, massless child of the re-rooted hand that takes
+    # its name, so the wrist's contacts keep metaworld's inverse weight, see _copy_invweights)
     wrist_size, wrist_pos, wrist_quat = _wrist_box(full, full_data, wrist_src,
-                                                   full.body(wrist_body).id)
+                                                   full.body("right_hand").id)
 
     if not arm:
         if wrist == "mesh":
@@ -271,6 +285,13 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
         hand.ipos = [0, 0, 0]
         for b in [hand] + _descendants(hand):
             b.gravcomp = 1.0  # the arm holds the gripper up in metaworld
+        if scene.wrist_geoms:
+            hid, rid = full.body("hand").id, full.body("right_hand").id
+            rot_h = full_data.xmat[hid].reshape(3, 3)
+            quat = np.zeros(4)
+            mujoco.mju_mat2Quat(quat, (rot_h.T @ full_data.xmat[rid].reshape(3, 3)).ravel())
+            hand.add_body(name="right_hand", pos=list(rot_h.T @ (full_data.xpos[rid] - full_data.xpos[hid])),
+                          quat=list(quat), explicitinertial=True, mass=0.0, inertia=[0, 0, 0])
     else:
         for name in _ARM_WORLD_FIXED:
             spec.delete(spec.body(name))
@@ -294,12 +315,12 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
     if "wrist" in used and wrist == "mesh":
         spec.geom(full.geom(wrist_src).name).name = "wrist"
     elif "wrist" in used and not isinstance(wrist, str):
-        pts = _wrist_hull_points(full, full_data, wrist_src, full.body(wrist_body).id, wrist)
+        pts = _wrist_hull_points(full, full_data, wrist_src, full.body("right_hand").id, wrist)
         spec.add_mesh(name="wrist_hull", uservert=pts.ravel().tolist())
-        spec.body(wrist_body).add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_MESH,
+        spec.body("right_hand").add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_MESH,
                                        meshname="wrist_hull")
     elif "wrist" in used:
-        spec.body(wrist_body).add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_BOX,
+        spec.body("right_hand").add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_BOX,
                                        size=list(wrist_size), pos=list(wrist_pos),
                                        quat=list(wrist_quat))
     for name, body, gtype, size, pos, quat, _ in scene.fixtures:
@@ -346,7 +367,36 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box"
     for i in range(model.neq):
         if model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
             model.eq_data[i, : WELD_ROW.size] = WELD_ROW
+    if metaworld_invweights:
+        _copy_invweights(model, full)
     return model, {"npairs": len(pair_names), "virtual_geoms": virtual}
+
+
+def _copy_invweights(model: mujoco.MjModel, full: mujoco.MjModel) -> None:
+    """Sets the compile-time inverse weights (body_invweight0, dof_invweight0) of every body
+    and joint of `model` that `full` has by name to `full`'s values.
+
+    Why: MuJoCo (and MJX) scale a soft constraint's regulariser by these compile-time
+    weights, not by the current mass matrix, so a weld or contact pulls with a force of about
+    d/(1-d) k r / invweight0 at violation r. Deleting the arm drops the hand's translational
+    invweight from metaworld's 6.1 to 0.97 (drawer scene): the mocap weld then pulls 6x
+    harder per metre and the free hand drags the drawer to -0.262 where metaworld's stops at
+    -0.203 (its joint limit is soft too). With metaworld's weights the port's drawer, replaying
+    metaworld's mocap path in C MuJoCo, stops at -0.2026 like metaworld's. The dynamics of
+    free motion (masses, gravity compensation) are unchanged."""
+    for b in range(model.nbody):
+        name = model.body(b).name
+        fid = mujoco.mj_name2id(full, mujoco.mjtObj.mjOBJ_BODY, name) if name else -1
+        if fid > 0:
+            model.body_invweight0[b] = full.body_invweight0[fid]
+    for j in range(model.njnt):
+        name = model.joint(j).name
+        fid = mujoco.mj_name2id(full, mujoco.mjtObj.mjOBJ_JOINT, name) if name else -1
+        if fid < 0 or full.jnt_type[fid] != model.jnt_type[j]:
+            continue
+        n = {0: 6, 1: 3, 2: 1, 3: 1}[int(model.jnt_type[j])]
+        a, fa = model.jnt_dofadr[j], full.jnt_dofadr[fid]
+        model.dof_invweight0[a:a + n] = full.dof_invweight0[fa:fa + n]
 
 
 # bodies of metaworld's Sawyer base that carry no joint and that nothing here reads: fused
@@ -439,7 +489,8 @@ class SawyerTask(Task):
     goal_high: tuple | None = None
 
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
-                 ls_iterations: int = 10, arm: bool = False, wrist: str | int = "box"):
+                 ls_iterations: int = 10, arm: bool = False, wrist: str | int = "box",
+                 metaworld_invweights: bool = True):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
         That is metaworld v3's own default (`_partially_observable = True`) and what BPref
@@ -453,7 +504,8 @@ class SawyerTask(Task):
         success and drift (benchmarks/metaworld_parity.py). Pass 50, 50 for metaworld's."""
         self.partially_observable = partially_observable
         self.arm = arm
-        self.mj_model, self.scene_info = build_scene(self.scene, arm=arm, wrist=wrist)
+        self.mj_model, self.scene_info = build_scene(
+            self.scene, arm=arm, wrist=wrist, metaworld_invweights=metaworld_invweights)
         self.mj_model.opt.iterations = solver_iterations
         self.mj_model.opt.ls_iterations = ls_iterations
         self.model = put_model(self.mj_model)

@@ -30,11 +30,17 @@ into the hole some steps earlier; max hand/puck error 0.10 / 0.11 m over 500 ste
 
 Measured closed loop, `python -m benchmarks.metaworld_dynamics --tasks sweep_into`
 (metaworld's scripted policy, 20 episodes a side, 500 steps, MJX port): the port is far
-*easier* than metaworld. Return 4602 vs 2160 (x2.13), success at step 500 100% vs 35% (any
-step: 100% vs 85%), first success at step 47 vs 56, hand-mocap distance 0.006 vs 0.072 m
-(x0.08): targets missed on return, last-step success and hand-mocap distance. Not
-investigated further here; the free hand (no arm, sawyer.py) is the first suspect, as for
-drawer_open.
+*easier* than metaworld. Return 4590 vs 2160 (x2.12), success at step 500 100% vs 35%,
+hand-mocap distance 0.007 vs 0.072 m (x0.10): three targets missed (the puck has no joint
+range). Why metaworld's own policy fails (6 of its episodes traced, C MuJoCo): in 3 the
+puck overshoots the goal into the far corner of the hole (-0.06, 0.90; the target radius is
+5 cm) and the hand jams against the hole's far wall 11 cm short of the mocap; in 2 the
+fingers press the puck into the table top (z 0.036 instead of 0.07) and the policy drags it
+back to y 0.39; 1 succeeds. On the port the hand follows the mocap into the hole and the
+puck ends on the goal every time. Metaworld's constraint weights (sawyer.py) did not change
+this (C MuJoCo, 10 episodes: 100% vs 30%); the arm's inertia and damping, which the free
+hand does not have, are the remaining suspect (its hand trails the mocap by 0.13 m in y
+while sweeping).
 """
 from __future__ import annotations
 

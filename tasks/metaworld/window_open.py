@@ -11,10 +11,10 @@ The first port (claws x handle only) let the hand ride over the handle after the
 drag the pane back: success at step 500 25% against metaworld's 100%.
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks window_open` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port): return 2270 vs 2219 (x1.02),
-success at step 500 100% vs 100%, slide max 0.2032 vs 0.2033. Target missed: hand-mocap
-distance 0.032 vs 0.159 m (x0.20): the free hand is not held back like metaworld's
-arm-held hand when the pane is at its stop.
+scripted policy, 20 episodes a side, 500 steps, MJX port): all four targets met. Return 2229
+vs 2219 (x1.00), success at step 500 100% vs 100%, slide max 0.2029 vs 0.2033, hand-mocap
+0.159 vs 0.159 m (x1.00; 0.032, x0.20, before the hand kept metaworld's constraint weights,
+sawyer.py: the stiffer weld was not held back by the pane at its stop).
 
 Reset quirk kept on purpose: metaworld computes `window_handle_pos_init` (the margin of the
 reach reward) right after moving the window *without* a forward pass, so it reads the
