@@ -358,7 +358,12 @@ def _reward_lab(argv: list[str]) -> int:
                         help="the RL preset whose reward, schedule and world-model settings "
                              "the lab uses (and the dataset's SAC)")
     parser.add_argument("--dataset-steps", type=int, default=datasets.DEFAULT_STEPS)
-    parser.add_argument("--dataset-seed", type=int, default=0)
+    parser.add_argument("--dataset-seed", type=int, default=None,
+                        help="default 0 (with --dataset-from-run: the run's first seed)")
+    parser.add_argument("--dataset-from-run", default=None, metavar="RUN",
+                        help="make the dataset from this finished `hprior train --algo "
+                             f"{registry.REFERENCE}` run's replay buffer instead of a new run "
+                             "(cached under the run's seed, steps and preset)")
     parser.add_argument("--dataset-only", action="store_true", help="build the dataset, stop")
     parser.add_argument("--rules", nargs="+", default=None,
                         help=f"default: all ({' '.join(rules())})")
@@ -378,8 +383,17 @@ def _reward_lab(argv: list[str]) -> int:
     from hprior_jax.setup_jax import enable_compilation_cache
 
     enable_compilation_cache()
-    data, path = datasets.load_or_build(args.task, args.dataset_seed, args.dataset_steps,
-                                        args.preset)
+    if args.dataset_from_run:
+        data = datasets.from_run(args.dataset_from_run, args.dataset_seed)
+        if data.task != args.task:
+            parser.error(f"--dataset-from-run {args.dataset_from_run} is a {data.task} run, "
+                         f"not --task {args.task}")
+        info = data.info
+        path = data.save(datasets.dataset_path(data.task, info["seed"], info["steps"],
+                                               info["preset"]))
+    else:
+        data, path = datasets.load_or_build(args.task, args.dataset_seed or 0,
+                                            args.dataset_steps, args.preset)
     print(f"dataset {path}: {data.info}", flush=True)
     if args.dataset_only:
         return 0

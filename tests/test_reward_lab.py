@@ -204,6 +204,33 @@ def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, cap
     assert "dataset" in capsys.readouterr().out and len(list(cached[0].parent.iterdir())) == 1
 
 
+def test_a_dataset_from_an_existing_sac_run_equals_the_one_build_makes(tmp_path):
+    """`--dataset-from-run`: the replay buffer of a finished SAC run (here with its own
+    evaluation and checkpoint cadence) gives the dataset that `build` makes by running the
+    same seed and steps itself; a run of another method is refused."""
+    from hprior_jax import presets
+    from hprior_jax.lab import dataset as datasets
+    from hprior_jax.loop import host
+    from hprior_jax.loop.run_dir import prepare_run_dir
+
+    built = datasets.build("toy_point", seed=3, steps=200, preset="smoke", progress=False)
+    cfg = presets.train_preset("toy_point", registry.REFERENCE, "smoke", steps=200, seeds=(3,),
+                               eval_every=100, checkpoint_every=100, out=str(tmp_path / "sac"))
+    host.run(cfg, prepare_run_dir(cfg), progress=False)
+    made = datasets.from_run(tmp_path / "sac")
+    for name in ("train_obs", "train_act", "train_reward", "test_obs", "test_reward",
+                 "pair_index", "pair_label"):
+        np.testing.assert_array_equal(getattr(made, name), getattr(built, name), err_msg=name)
+    assert (made.info["seed"], made.info["steps"], made.segment_len) == (3, 200, built.segment_len)
+    with pytest.raises(ValueError, match="--seed 4 is not in this run"):
+        datasets.from_run(tmp_path / "sac", seed=4)
+    other = presets.train_preset("toy_point", registry.LAB_REFERENCE, "smoke", steps=200,
+                                 out=str(tmp_path / "pebble"))
+    prepare_run_dir(other)  # its config only: the method is checked before any checkpoint
+    with pytest.raises(ValueError, match="--algo pebble run"):
+        datasets.from_run(tmp_path / "pebble")
+
+
 def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
     """The lab trains with a 16/32/64-row minibatch while the labels fit in it: the epoch is
     the same single minibatch of the real pairs, only with less padding."""

@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from hprior_jax.envs import task_info
@@ -119,22 +120,62 @@ def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "r
     from hprior_jax.methods import registry
 
     length = task_info(task).episode_length
-    segment_len = presets.train_preset(task, registry.LAB_REFERENCE, preset).pebble.segment_len
-    if steps % length or steps // length < 2 * heldout_every:
-        raise ValueError(f"--steps must be a multiple of the episode length ({length}) and "
-                         f"hold at least {2 * heldout_every} episodes")
+    _check_steps(steps, length, heldout_every)  # before the SAC run
     t0 = time.perf_counter()
     cfg = presets.train_preset(task, registry.REFERENCE, preset, steps=steps, seeds=(seed,),
                                eval_every=steps, checkpoint_every=steps)
     with tempfile.TemporaryDirectory() as tmp:
         rs = host.run(dataclasses.replace(cfg, out=tmp), Path(tmp), progress=progress)
-    buf = rs.replay
-    rows = lambda x: np.asarray(x)[0, :steps]
+    replay = jax.tree.map(lambda x: np.asarray(x)[0], rs.replay)
+    return _from_replay(task, replay, steps, seed, preset, f"SAC ({preset}) replay buffer",
+                        t0, heldout_every, num_pairs)
+
+
+def from_run(run_dir: Path, seed: int | None = None, heldout_every: int = 3,
+             num_pairs: int = HELDOUT_PAIRS) -> Dataset:
+    """The Dataset of an existing `hprior train --algo sac` run: its latest checkpoint's
+    replay buffer (one seed, default the run's first), as `build` would keep it. Saves the
+    SAC run that `build` would repeat; the file it is saved under names the run's seed,
+    checkpoint step and preset."""
+    from hprior_jax.loop.restore import restore_run
+    from hprior_jax.loop.run_dir import load_run_config
+    from hprior_jax.methods import registry
+
+    t0 = time.perf_counter()
+    algo = load_run_config(Path(run_dir)).algo
+    if algo != registry.REFERENCE:  # checked before the checkpoint is read
+        raise ValueError(f"{run_dir} is a --algo {algo} run; the lab's data comes from "
+                         f"{registry.REFERENCE} on the true reward")
+    restored = restore_run(Path(run_dir))
+    cfg = restored.cfg
+    seed = cfg.seeds[restored.seed_index(seed)]
+    replay = jax.tree.map(np.asarray, restored.of_seed(seed).replay)
+    return _from_replay(cfg.task, replay, restored.step, seed, cfg.preset,
+                        f"SAC ({cfg.preset}) replay buffer of {run_dir}", t0, heldout_every,
+                        num_pairs)
+
+
+def _check_steps(steps: int, length: int, heldout_every: int) -> None:
+    if steps % length or steps // length < 2 * heldout_every:
+        raise ValueError(f"the dataset's steps ({steps}) must be a multiple of the episode "
+                         f"length ({length}) and hold at least {2 * heldout_every} episodes")
+
+
+def _from_replay(task: str, replay, steps: int, seed: int, preset: str, source: str,
+                 t0: float, heldout_every: int, num_pairs: int) -> Dataset:
+    """One seed's replay buffer (rows in step order, never wrapped) -> Dataset."""
+    from hprior_jax import presets
+    from hprior_jax.methods import registry
+
+    length = task_info(task).episode_length
+    segment_len = presets.train_preset(task, registry.LAB_REFERENCE, preset).pebble.segment_len
+    _check_steps(steps, length, heldout_every)
+    rows = lambda x: np.asarray(x)[:steps]
     (tr_o, te_o), (tr_a, te_a), (tr_r, te_r) = split_episodes(
-        rows(buf.obs), rows(buf.action), rows(buf.true_reward), length, heldout_every)
+        rows(replay.obs), rows(replay.action), rows(replay.true_reward), length, heldout_every)
     index, labels = heldout_pairs(te_r, segment_len, num_pairs, np.random.default_rng(seed))
     returns = np.concatenate([tr_r, te_r]).sum(1)
-    info = dict(seed=seed, steps=steps, preset=preset, source=f"SAC ({preset}) replay buffer",
+    info = dict(seed=seed, steps=steps, preset=preset, source=source,
                 build_seconds=round(time.perf_counter() - t0, 1),
                 train_episodes=int(tr_r.shape[0]), test_episodes=int(te_r.shape[0]),
                 episode_return_min=float(returns.min()), episode_return_max=float(returns.max()),
