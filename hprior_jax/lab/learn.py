@@ -47,6 +47,7 @@ from hprior_jax.pbrl.query import select_queries
 from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
+from hprior_jax.prior.diagnostics import world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle")
@@ -151,6 +152,7 @@ class Lab:
         self.seconds: dict[str, float] = {}
         self.compile_seconds: dict[str, float] = {}
         self.adam_steps = 0  # reward-ensemble minibatch steps run, of any minibatch size
+        self.diagnostics: list[dict] = []  # per seed, when a rule needs the world model
 
     # -- per seed -----------------------------------------------------------------------
     def seed_context(self, key: jax.Array, train: Episodes) -> SeedContext:
@@ -264,6 +266,18 @@ class Lab:
                                      self.init_cell(k, capacity))
         return jax.jit(jax.vmap(one))(keys)
 
+    def _world_model_diagnostics(self, ctx: SeedContext, num_segments: int = 256) -> list[dict]:
+        """prior.diagnostics of each seed's world model on fixed held-out segments (the same
+        for every seed; they read the held-out true rewards, as the metrics do). -> one dict
+        per seed."""
+        fn = jax.vmap(partial(world_model_diagnostics, cfg=self.cfg.world_model,
+                              query=self.cfg.attention_query), (0, None, None, None, None))
+        args = (ctx.wm_params, *held_out_segments(self.data, self.T, num_segments))
+        out = jax.device_get(self._timed("diagnostics", self._compiled("diagnostics", fn, *args),
+                                         *args))
+        return [dict(seed=seed, **{k: float(v[i]) for k, v in out.items()})
+                for i, seed in enumerate(self.cfg.seeds)]
+
     def run(self, progress=print) -> list[dict]:
         """Every cell through every budget. -> rows (seed, rule, budget, the held-out
         predictions [E, L] as `prediction`, and the budget's last round's metrics)."""
@@ -272,6 +286,11 @@ class Lab:
         seed_context = self._compiled("world_model", jax.vmap(self.seed_context, (0, None)),
                                       keys, self.train)
         ctx = self._timed("world_model", seed_context, keys, self.train)
+        if cfg.needs_world_model:
+            self.diagnostics = self._world_model_diagnostics(ctx)
+            progress("world model, mean over seeds: " + ", ".join(
+                f"{k} {np.mean([d[k] for d in self.diagnostics]):.3g}"
+                for k in self.diagnostics[0] if k != "seed"))
         # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
         over_cells = lambda fn, seed_axes, rule_axes: jax.vmap(jax.vmap(fn, rule_axes), seed_axes)
         # one-shot runs have only a first round: no candidate pool for the uncertainty rules
@@ -315,6 +334,18 @@ class Lab:
                          f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
         return rows
+
+
+def held_out_segments(data: Dataset, segment_len: int, num: int, seed: int = 0):
+    """`num` fixed segments of the held-out episodes and a random step order for each:
+    (obs, act, true reward, perm), the inputs of prior.diagnostics."""
+    rng = np.random.default_rng(seed)
+    ep = rng.integers(0, data.test_obs.shape[0], num)
+    start = rng.integers(0, data.episode_length - segment_len + 1, num)
+    steps = start[:, None] + np.arange(segment_len)
+    cut = lambda x: jnp.asarray(x[ep[:, None], steps])
+    perm = jnp.asarray(np.stack([rng.permutation(segment_len) for _ in range(num)]))
+    return cut(data.test_obs), cut(data.test_act), cut(data.test_reward), perm
 
 
 def minibatch_size(labels: int, batch_size: int) -> int:

@@ -6,12 +6,14 @@ trains its reward exactly as in an RL run of that preset, only on fixed data.
 """
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import resource
 import time
 from pathlib import Path
 
+import numpy as np
 
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import CONTROLS, Lab, LabConfig
@@ -103,6 +105,14 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print) -> dict:
         "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
         "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
     }
+    if lab.diagnostics:  # the world model's, per seed (prior.diagnostics)
+        names = [k for k in lab.diagnostics[0] if k != "seed"]
+        info["world_model_diagnostics_mean"] = {
+            k: round(float(np.mean([d[k] for d in lab.diagnostics])), 5) for k in names}
+        with open(out / "diagnostics.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=["seed", *names], lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(lab.diagnostics)
     (out / "run_info.json").write_text(json.dumps(info, indent=2))
     write_report(rows, out, title=f"Reward-learning lab: {data.task}")
     return info
