@@ -29,13 +29,10 @@ def _cfg(tmp, algo, name, seeds):
                                 **SMALL)
 
 
-# The resume-and-lane check runs in -m slow for every baseline (CI time: SURF's took 154 s);
-# the fast suite keeps SURF's loop run (test_each_method_leaves_its_mark: its pool survives a
-# resume there), MRN's (test_mrn_meta_steps_replace_sac_steps) and each method's mechanism
-# tests (test_surf.py, test_rune.py, test_mrn.py, test_bisim.py)
-LOOP_CHECKED = ("surf",)
-
-
+# Every baseline's loop runs (resume-and-lane check, what each method leaves in the run) are in
+# -m slow (CI time: SURF's alone took 105-154 s); the fast suite keeps MRN's loop run
+# (test_mrn_meta_steps_replace_sac_steps: its host-scheduled meta steps) and each method's
+# mechanism tests (test_surf.py, test_rune.py, test_mrn.py, test_bisim.py)
 @pytest.fixture(scope="module")
 def runs_of(tmp_path_factory):
     """runs_of(algo) -> (cfg, mid, resumed, full), each run once per module: seeds (8, 7)
@@ -62,10 +59,7 @@ def runs_of(tmp_path_factory):
     return get
 
 
-# RUNE's and BISIM's loop runs are in -m slow (CI time); their mechanisms are checked fast in
-# test_rune.py and test_bisim.py
-@pytest.fixture(params=[*LOOP_CHECKED, *(pytest.param(a, marks=pytest.mark.slow)
-                                         for a in BASELINES if a not in LOOP_CHECKED)])
+@pytest.fixture(params=[pytest.param(a, marks=pytest.mark.slow) for a in BASELINES])
 def runs(request, runs_of):
     return (request.param, *runs_of(request.param))
 

@@ -57,19 +57,21 @@ def test_next_state_errors_match_numpy_and_the_dynamics_loss():
     params = wm.init(jax.random.PRNGKey(0), CFG).params
     obs = jnp.asarray(rng.normal(size=(B, T, 3)), jnp.float32)
     act = jnp.asarray(rng.uniform(-1, 1, size=(B, T, 2)), jnp.float32)
-    e = next_state_errors(params, obs, act, CFG)
+    e = jax.jit(next_state_errors, static_argnums=3)(params, obs, act, CFG)
     o = np.asarray(obs)
     half_sq = lambda p: 0.5 * ((p - o[:, 1:]) ** 2).sum(-1).mean()
     assert float(e["wm/persistence_error"]) == pytest.approx(half_sq(o[:, :-1]), rel=1e-5)
     assert float(e["wm/mean_state_error"]) == pytest.approx(
         half_sq(o.reshape(-1, 3).mean(0)), rel=1e-5)
-    _, m = wm.dynamics_loss(params.dyn, params.obs, obs, act, None, CFG, deterministic=True)
+    _, m = jax.jit(wm.dynamics_loss, static_argnums=(5, 6))(params.dyn, params.obs, obs, act,
+                                                            None, CFG, True)
     assert float(e["wm/next_obs_error"]) == pytest.approx(float(m["prior/wm_next_obs_loss"]),
                                                           rel=1e-5)
     assert float(e["wm/skill_vs_persistence"]) == pytest.approx(
         1 - float(e["wm/next_obs_error"]) / half_sq(o[:, :-1]), rel=1e-5)
 
 
+@pytest.mark.slow  # CI time (54 s: two compiles of the diagnostics); the lab runs it for real
 def test_the_lab_reports_each_seeds_world_model_on_held_out_segments():
     """Per seed (seeds' models differ), on the same fixed held-out segments."""
     from tests.test_reward_lab import TINY_WM, confounded, tiny

@@ -204,10 +204,24 @@ def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, cap
     assert "dataset" in capsys.readouterr().out and len(list(cached[0].parent.iterdir())) == 1
 
 
+def test_a_dataset_is_made_only_from_a_sac_run(tmp_path):
+    """`--dataset-from-run` refuses another method's run before reading any checkpoint."""
+    from hprior_jax import presets
+    from hprior_jax.lab import dataset as datasets
+    from hprior_jax.loop.run_dir import prepare_run_dir
+
+    other = presets.train_preset("toy_point", registry.LAB_REFERENCE, "smoke", steps=200,
+                                 out=str(tmp_path / "pebble"))
+    prepare_run_dir(other)  # its config only
+    with pytest.raises(ValueError, match="--algo pebble run"):
+        datasets.from_run(tmp_path / "pebble")
+
+
+@pytest.mark.slow  # CI time: two SAC runs (39 s)
 def test_a_dataset_from_an_existing_sac_run_equals_the_one_build_makes(tmp_path):
     """`--dataset-from-run`: the replay buffer of a finished SAC run (here with its own
     evaluation and checkpoint cadence) gives the dataset that `build` makes by running the
-    same seed and steps itself; a run of another method is refused."""
+    same seed and steps itself."""
     from hprior_jax import presets
     from hprior_jax.lab import dataset as datasets
     from hprior_jax.loop import host
@@ -224,11 +238,6 @@ def test_a_dataset_from_an_existing_sac_run_equals_the_one_build_makes(tmp_path)
     assert (made.info["seed"], made.info["steps"], made.segment_len) == (3, 200, built.segment_len)
     with pytest.raises(ValueError, match="--seed 4 is not in this run"):
         datasets.from_run(tmp_path / "sac", seed=4)
-    other = presets.train_preset("toy_point", registry.LAB_REFERENCE, "smoke", steps=200,
-                                 out=str(tmp_path / "pebble"))
-    prepare_run_dir(other)  # its config only: the method is checked before any checkpoint
-    with pytest.raises(ValueError, match="--algo pebble run"):
-        datasets.from_run(tmp_path / "pebble")
 
 
 def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
