@@ -285,13 +285,14 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box",
         hand.ipos = [0, 0, 0]
         for b in [hand] + _descendants(hand):
             b.gravcomp = 1.0  # the arm holds the gripper up in metaworld
-        if scene.wrist_geoms:
+        if any("wrist" in pair for pair in pair_names):
             hid, rid = full.body("hand").id, full.body("right_hand").id
             rot_h = full_data.xmat[hid].reshape(3, 3)
+            pos = rot_h.T @ (full_data.xpos[rid] - full_data.xpos[hid])
             quat = np.zeros(4)
             mujoco.mju_mat2Quat(quat, (rot_h.T @ full_data.xmat[rid].reshape(3, 3)).ravel())
-            hand.add_body(name="right_hand", pos=list(rot_h.T @ (full_data.xpos[rid] - full_data.xpos[hid])),
-                          quat=list(quat), explicitinertial=True, mass=0.0, inertia=[0, 0, 0])
+            hand.add_body(name="right_hand", pos=list(pos), quat=list(quat),
+                          explicitinertial=True, mass=0.0, inertia=[0, 0, 0])
     else:
         for name in _ARM_WORLD_FIXED:
             spec.delete(spec.body(name))
@@ -318,11 +319,11 @@ def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box",
         pts = _wrist_hull_points(full, full_data, wrist_src, full.body("right_hand").id, wrist)
         spec.add_mesh(name="wrist_hull", uservert=pts.ravel().tolist())
         spec.body("right_hand").add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_MESH,
-                                       meshname="wrist_hull")
+                                         meshname="wrist_hull")
     elif "wrist" in used:
         spec.body("right_hand").add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_BOX,
-                                       size=list(wrist_size), pos=list(wrist_pos),
-                                       quat=list(wrist_quat))
+                                         size=list(wrist_size), pos=list(wrist_pos),
+                                         quat=list(wrist_quat))
     for name, body, gtype, size, pos, quat, _ in scene.fixtures:
         spec.body(body).add_geom(name=name, type=getattr(mujoco.mjtGeom, f"mjGEOM_{gtype}"),
                                  size=list(size), pos=list(pos), quat=list(quat))
