@@ -1,7 +1,8 @@
 """Closed-loop dynamics parity of the MetaWorld ports (issue 18): metaworld's scripted policy
 drives metaworld's env and the MJX port; the port must *move* like metaworld, not only score
-like it. The fast tests share one short run of one task; the full six-task comparison
-(20 episodes a side, 500 steps) is the slow test and `python -m benchmarks.metaworld_dynamics`."""
+like it. Fast: one short MJX run of button_press, a short C MuJoCo run of drawer_open's
+scene, and the constraint weights the scenes keep; the full six-task comparison (20 episodes
+a side, 500 steps) is the slow test and `python -m benchmarks.metaworld_dynamics`."""
 import numpy as np
 import pytest
 
