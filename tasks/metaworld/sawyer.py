@@ -18,11 +18,12 @@ Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`):
     (0.67). With these weights drawer_open, door_open and window_open meet all four
     targets below. What the weights do not give back is the arm's inertia and joint
     damping: over the first 60 steps (reaching, no contact) metaworld's hand trails the
-    mocap by 26-60% more than the free hand's (4 tasks, metaworld's mocap path replayed in
-    C MuJoCo). A weld damping ratio of 1.2 instead of 1, with the hand's weight scaled by
-    1/1.2^2 to keep the static pull, matches that lag within 12% on the same 4 tasks, but
-    cost window_open's last-step success (60% vs 100%, 10 episodes, C MuJoCo), so
-    metaworld's weld is kept as it is.
+    mocap by 17-60% more than the free hand's (6 tasks, 4 episodes each, metaworld's mocap
+    path replayed on this scene in C MuJoCo: `python -m benchmarks.metaworld_mocap_replay`).
+    A weld damping ratio of 1.2 instead of 1, with the hand's weight scaled by 1/1.2^2 to
+    keep the static pull, matched that lag within 12% on 4 of the tasks but cost
+    window_open's last-step success (60% vs 100%, 10 episodes, C MuJoCo; a one-off script,
+    not kept), so metaworld's weld is kept as it is.
     `arm=True` keeps metaworld's arm instead: its joints with damping, armature and limits,
     link inertias and the weld exactly as metaworld compiles them (joint-less bodies that
     nothing reads are fused into their parents, world-fixed ones deleted). In C MuJoCo that
@@ -383,8 +384,9 @@ def _copy_invweights(model: mujoco.MjModel, full: mujoco.MjModel) -> None:
     invweight from metaworld's 6.1 to 0.97 (drawer scene): the mocap weld then pulls 6x
     harder per metre and the free hand drags the drawer to -0.262 where metaworld's stops at
     -0.203 (its joint limit is soft too). With metaworld's weights the port's drawer, replaying
-    metaworld's mocap path in C MuJoCo, stops at -0.2026 like metaworld's. The dynamics of
-    free motion (masses, gravity compensation) are unchanged."""
+    metaworld's mocap path in C MuJoCo, stops at -0.2026 like metaworld's
+    (benchmarks/metaworld_mocap_replay.py). The dynamics of free motion (masses, gravity
+    compensation) are unchanged."""
     for b in range(model.nbody):
         name = model.body(b).name
         fid = mujoco.mj_name2id(full, mujoco.mjtObj.mjOBJ_BODY, name) if name else -1
