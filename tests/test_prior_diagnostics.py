@@ -89,3 +89,28 @@ def test_the_lab_reports_each_seeds_world_model_on_held_out_segments():
                                     *held_out_segments(data, lab.T, 32), cfg=TINY_WM)
     assert rows[1]["alpha/position_r2"] == pytest.approx(float(alone["alpha/position_r2"]),
                                                          rel=1e-4)
+
+
+def test_unreachable_targets_counts_stored_pairs_only_and_matches_numpy():
+    """|α_t·R̂_k| > 1 over the stored pairs' steps (not the empty slots), mean over members."""
+    from hprior_jax.buffers import preferences
+    from hprior_jax.networks.reward_ensemble import (RewardConfig, init_reward_ensemble,
+                                                     member_rewards)
+    from hprior_jax.prior.diagnostics import unreachable_targets
+    from hprior_jax.prior.loss import PairCredit
+
+    cfg = RewardConfig(hidden_sizes=(16,), ensemble_size=3)
+    params = init_reward_ensemble(jax.random.PRNGKey(0), 3, 2, cfg)
+    seg = lambda *s: jnp.asarray(rng.normal(size=s) * 3, jnp.float32)
+    store = preferences.add(preferences.init(T, 3, 2, capacity=5), preferences.PreferenceBatch(
+        seg(3, T, 3), seg(3, T, 2), seg(3, T, 3), seg(3, T, 2), jnp.zeros(3, jnp.int32)),
+        jnp.ones(3, bool))
+    a1, a2 = _dirichlet((5, T)) * 4, _dirichlet((5, T)) * 4  # scaled: some targets leave [-1, 1]
+    credit = PairCredit(alpha1=jnp.asarray(a1, jnp.float32), alpha2=jnp.asarray(a2, jnp.float32))
+    got = float(unreachable_targets(params, store, credit, cfg))
+    share = []
+    for obs, act, alpha in ((store.obs1, store.act1, a1), (store.obs2, store.act2, a2)):
+        r = np.asarray(member_rewards(params, obs[:3], act[:3], cfg))  # [K, 3, T]
+        share.append((np.abs(alpha[:3] * r.sum(-1, keepdims=True)) > 1).mean(-1))  # [K, 3]
+    assert 0 < got < 1
+    assert got == pytest.approx(np.concatenate(share, 1).mean(), rel=1e-5)

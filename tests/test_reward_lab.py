@@ -116,6 +116,7 @@ def test_uniform_queries_give_every_rule_of_a_seed_the_same_labels(oracle_vs_peb
     pebble, oracle = cells[(0, "pebble", 20)], cells[(0, "oracle", 20)]
     assert pebble["labels"] == oracle["labels"] == 20
     assert pebble["prior_loss"] > 0 and oracle["prior_loss"] > 0
+    assert 0 <= oracle["target_out_of_range"] <= 1  # the prior's unreachable targets
     assert not np.allclose(pebble["prediction"], oracle["prediction"], atol=1e-3)
 
 

@@ -47,7 +47,7 @@ from hprior_jax.pbrl.query import select_queries
 from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
-from hprior_jax.prior.diagnostics import world_model_diagnostics
+from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle")
@@ -232,7 +232,10 @@ class Lab:
                                       terms=(prior_term(lam, credit, "raw"),))
         metrics = {"labels": prefs.count, "epochs": m["reward/epochs"],
                    "train_acc": m["reward/train_acc"], "ce": m["reward/loss"],
-                   "prior_loss": m["prior/loss"]}
+                   "prior_loss": m["prior/loss"],
+                   # of the rule's own credit (uniform for pebble, which does not use it)
+                   "target_out_of_range": unreachable_targets(params, prefs, credit,
+                                                              cfg.reward)}
         return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
 
     def predict(self, cell: Cell, test: Episodes) -> jax.Array:

@@ -34,10 +34,10 @@ from hprior_jax.envs import task_info
 from hprior_jax.loop.state import RunState
 from hprior_jax.methods.pebble import Extension, Pebble, PebbleConfig, PebbleState, pebble_preset
 from hprior_jax.methods.registry import MethodSpec
-from hprior_jax.networks.reward_ensemble import member_rewards
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import pair_credit
-from hprior_jax.prior.loss import PairCredit, prior_term, target_saturation, variant_alpha
+from hprior_jax.prior.diagnostics import unreachable_targets
+from hprior_jax.prior.loss import PairCredit, prior_term, variant_alpha
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
 LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
@@ -161,12 +161,9 @@ class WorldModelPrior(Extension):
         alpha = variant_alpha(jnp.concatenate([credit.alpha1, credit.alpha2]), self.variant)
         ent = -jnp.sum(alpha * jnp.log(jnp.maximum(alpha, 1e-12)), -1) / jnp.log(t)
         mask2 = jnp.concatenate([real, real])
-        obs = jnp.concatenate([prefs.obs1, prefs.obs2])
-        act = jnp.concatenate([prefs.act1, prefs.act2])
-        r = member_rewards(ms.reward, obs, act, reward_cfg)  # [K, 2C, T]
-        out = jax.vmap(lambda r_k: jax.vmap(target_saturation)(r_k, alpha))(r)  # [K, 2C]
         return {"prior/attention_entropy": jnp.sum(ent * mask2) / n,
-                "prior/target_out_of_range": jnp.sum(out.mean(0) * mask2) / n}
+                "prior/target_out_of_range": unreachable_targets(
+                    ms.reward, prefs, credit, reward_cfg, self.variant)}
 
     # -- host side -------------------------------------------------------------------------
     def run_event(self, rs: RunState, step: int):

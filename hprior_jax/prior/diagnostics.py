@@ -15,14 +15,19 @@ diagnostics on fixed segments (they read true rewards: metrics only, never train
   correlation, within each segment, of α_t with the true reward's deviation from the
   segment's mean (mean over segments whose reward is not constant): positive when α credits
   the steps that pay more.
+* `unreachable_targets`: the share of the prior's targets α_t·R̂ over the stored pairs that a
+  tanh reward cannot reach (|target| > 1), mean over ensemble members.
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
+from hprior_jax.buffers.preferences import PreferenceStore
+from hprior_jax.networks.reward_ensemble import member_rewards
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
+from hprior_jax.prior.loss import PairCredit, target_saturation, variant_alpha
 
 
 def _half_sq(pred: jax.Array, target: jax.Array) -> jax.Array:
@@ -79,3 +84,17 @@ def world_model_diagnostics(params: wm.WorldModelParams, obs: jax.Array, act: ja
     alpha_shuffled = segment_credit(params, shuffle(obs), shuffle(act), cfg, query=query)
     return {**next_state_errors(params, obs, act, cfg),
             **credit_diagnostics(alpha, alpha_shuffled, perm, true_r)}
+
+
+def unreachable_targets(reward_params, prefs: PreferenceStore, credit: PairCredit, reward_cfg,
+                        variant: str = "raw") -> jax.Array:
+    """Share of the targets α_t·R̂_k beyond [-1, 1] over the stored pairs' segments (both
+    sides, the credit `variant` applied), mean over members k."""
+    real = jnp.arange(prefs.capacity) < prefs.count
+    mask2 = jnp.concatenate([real, real])
+    alpha = variant_alpha(jnp.concatenate([credit.alpha1, credit.alpha2]), variant)
+    obs = jnp.concatenate([prefs.obs1, prefs.obs2])
+    act = jnp.concatenate([prefs.act1, prefs.act2])
+    r = member_rewards(reward_params, obs, act, reward_cfg)  # [K, 2C, T]
+    out = jax.vmap(lambda r_k: jax.vmap(target_saturation)(r_k, alpha))(r)  # [K, 2C]
+    return jnp.sum(out.mean(0) * mask2) / (jnp.maximum(prefs.count, 1).astype(jnp.float32) * 2)
