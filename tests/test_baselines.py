@@ -29,10 +29,10 @@ def _cfg(tmp, algo, name, seeds):
                                 **SMALL)
 
 
-# Every baseline's loop runs (resume-and-lane check, what each method leaves in the run) are in
-# -m slow (CI time: SURF's alone took 105-154 s); the fast suite keeps MRN's loop run
-# (test_mrn_meta_steps_replace_sac_steps: its host-scheduled meta steps) and each method's
-# mechanism tests (test_surf.py, test_rune.py, test_mrn.py, test_bisim.py)
+# Every baseline's loop runs (resume-and-lane check, what each method leaves in the run, MRN's
+# host-scheduled meta steps) are in -m slow (CI time: SURF's alone took 105-154 s, MRN's 109 s);
+# the fast suite keeps each method's mechanism tests (test_surf.py, test_rune.py, test_mrn.py,
+# test_bisim.py)
 @pytest.fixture(scope="module")
 def runs_of(tmp_path_factory):
     """runs_of(algo) -> (cfg, mid, resumed, full), each run once per module: seeds (8, 7)
@@ -143,6 +143,7 @@ def _critic_updates(rs):
     return int(np.asarray(jax.tree.leaves(rs.sac.critic_opt)[0])[0])
 
 
+@pytest.mark.slow  # CI time (109 s); MRN's meta step is checked fast in test_mrn.py
 def test_mrn_meta_steps_replace_sac_steps(runs_of):
     """As many critic updates as PEBBLE (each meta step made one, in place of the SAC step's),
     the buffer relabelled after the last meta step, every meta step logged with its cost."""

@@ -128,6 +128,7 @@ def test_a_lambda_sweep_cell_equals_a_run_of_that_lambda_alone(lambda_sweep):
     assert _gap(cell(0), cell(2)) > 10 * rounding  # λ = 0 vs 5
 
 
+@pytest.mark.slow  # CI time (65 s)
 @pytest.mark.parametrize("fixture, algo", [("format1_prior", "prior")])
 def test_a_run_directory_of_format_1_still_resumes(tmp_path, fixture, algo):
     """A tiny PRIOR run interrupted at step 80 by the code before methods were plug-ins

@@ -271,6 +271,7 @@ def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
         np.testing.assert_allclose(a, b, atol=1e-6)
 
 
+@pytest.mark.slow  # CI time (42 s)
 def test_one_shot_trains_each_budget_afresh_on_all_its_labels(data):
     cfg = tiny(rules=("pebble",), credits=("none",), seeds=(0,), budgets=(10, 20),
                one_shot=True, world_model=None)
