@@ -87,6 +87,9 @@ HAND_SPACE_HIGH = np.array([0.525, 1.025, 0.7])
 GRIPPER_GEOMS = ("rightclaw_it", "leftclaw_it", "rightpad_geom", "leftpad_geom")
 HAND_MASS, HAND_INERTIA = 1.0, 2e-3
 RESET_HAND_STEPS = 50  # SawyerXYZEnv._reset_hand
+# qpos / dof entries per joint, by mjtJoint (free, ball, slide, hinge)
+QPOS_SIZE = {0: 7, 1: 4, 2: 1, 3: 1}
+DOF_SIZE = {0: 6, 1: 3, 2: 1, 3: 1}
 
 
 def metaworld_xml_path(name: str) -> str:
@@ -397,7 +400,7 @@ def _copy_invweights(model: mujoco.MjModel, full: mujoco.MjModel) -> None:
         fid = mujoco.mj_name2id(full, mujoco.mjtObj.mjOBJ_JOINT, name) if name else -1
         if fid < 0 or full.jnt_type[fid] != model.jnt_type[j]:
             continue
-        n = {0: 6, 1: 3, 2: 1, 3: 1}[int(model.jnt_type[j])]
+        n = DOF_SIZE[int(model.jnt_type[j])]
         a, fa = model.jnt_dofadr[j], full.jnt_dofadr[fid]
         model.dof_invweight0[a:a + n] = full.dof_invweight0[fa:fa + n]
 
@@ -697,8 +700,8 @@ class SawyerTask(Task):
         assert len(ours) == len(theirs), "joint lists of port and metaworld differ"
         for j, jm in zip(ours, theirs):
             mj = mm.joint(jm)
-            n = {0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])]
-            nvj = {0: 6, 1: 3, 2: 1, 3: 1}[int(m.jnt_type[j])]
+            n = QPOS_SIZE[int(m.jnt_type[j])]
+            nvj = DOF_SIZE[int(m.jnt_type[j])]
             qpos[m.jnt_qposadr[j]:m.jnt_qposadr[j] + n] = md.qpos[mj.qposadr[0]:mj.qposadr[0] + n]
             qvel[m.jnt_dofadr[j]:m.jnt_dofadr[j] + nvj] = md.qvel[mj.dofadr[0]:mj.dofadr[0] + nvj]
         data = mjx.make_data(self.model)
