@@ -7,7 +7,9 @@ drawn inside the scan, after a vmapped reset; the first call (compile) is timed 
 best of `--repeats` runs is reported. Reference: the same task in its own package (dm_control
 `env.step` with random actions, one Python env on one core), via a per-domain function in
 REFERENCES so other domains (MetaWorld) can add theirs. `c_over_mjx` = reference env-steps/s
-divided by MJX env-steps/s summed over the batch (>1: MJX slower). Writes
+divided by MJX env-steps/s summed over the batch (>1: MJX slower). `--linesearch while scan`
+also times each batch with MJX's own scan line-search loop (the reference for the while loop
+the ports trace by default, see tasks/physics.py), interleaved in the same run. Writes
 benchmarks/results/env_throughput.csv and prints a table.
 """
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 from typing import Callable
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+from tasks import physics
 
 import jax
 import jax.numpy as jnp
@@ -100,6 +103,8 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=50, help="control steps per timed rollout")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--ref-steps", type=int, default=2000)
+    parser.add_argument("--linesearch", nargs="+", default=["while"], choices=["while", "scan"],
+                        help="line-search loops to time (tasks.physics.linesearch_loop)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
@@ -108,11 +113,13 @@ def main(argv=None):
     for name in args.tasks:
         task = tasks.make(name)
         ref = REFERENCES[task.domain](name, args.ref_steps, 0)
-        for batch in args.batch:
-            compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats)
+        for batch, loop in ((b, loop) for b in args.batch for loop in args.linesearch):
+            with physics.linesearch_loop(loop):
+                compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats)
             sps = batch * args.steps / run_s
             rows.append(dict(
-                task=name, batch=batch, steps=args.steps, n_sub_steps=task.n_sub_steps,
+                task=name, batch=batch, linesearch=loop, steps=args.steps,
+                n_sub_steps=task.n_sub_steps,
                 compile_s=round(compile_s, 2), run_s=round(run_s, 4),
                 mjx_env_steps_per_s=round(sps, 1),
                 mjx_substeps_per_s=round(sps * task.n_sub_steps, 1),
@@ -126,7 +133,7 @@ def main(argv=None):
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    cols = ["task", "batch", "compile_s", "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
+    cols = ["task", "batch", "linesearch", "compile_s", "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
     print("\n" + " | ".join(f"{c:>20}" for c in cols))
     for r in rows:
         print(" | ".join(f"{str(r[c]):>20}" for c in cols))

@@ -13,9 +13,9 @@ from typing import Callable, NamedTuple
 
 from tasks.base import Task, TaskState
 
-_REGISTRY: dict[str, Callable[[], Task]] = {}
+_REGISTRY: dict[str, Callable[..., Task]] = {}
 _INFO: dict[str, "TaskInfo"] = {}
-_CACHE: dict[str, Task] = {}
+_CACHE: dict[tuple, Task] = {}
 
 
 class TaskInfo(NamedTuple):
@@ -50,22 +50,25 @@ def names() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def make(name: str) -> Task:
-    """The task registered under `name`; built once per process (models are immutable)."""
+def make(name: str, **options) -> Task:
+    """The task registered under `name`, built with the port's keyword `options` (e.g.
+    `contacts="all"` for a DM Control port); built once per process and options (models
+    are immutable)."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(names())}")
-    if name not in _CACHE:
-        _CACHE[name] = _REGISTRY[name]()
-    return _CACHE[name]
+    key = (name, *sorted(options.items()))
+    if key not in _CACHE:
+        _CACHE[key] = _REGISTRY[name](**options)
+    return _CACHE[key]
 
 
-def _lazy(module: str, cls: str) -> Callable[[], Task]:
+def _lazy(module: str, cls: str) -> Callable[..., Task]:
     """A factory that imports the port on first use (building a scene takes seconds)."""
 
-    def factory() -> Task:
+    def factory(**options) -> Task:
         import importlib
 
-        return getattr(importlib.import_module(f"tasks.{module}"), cls)()
+        return getattr(importlib.import_module(f"tasks.{module}"), cls)(**options)
 
     return factory
 

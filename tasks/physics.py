@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import threading
 
 import jax
 import mujoco
@@ -19,8 +20,77 @@ with contextlib.redirect_stdout(io.StringIO()):
     # mujoco.mjx prints "Failed to import warp" when the optional Warp backend is absent;
     # we only use the JAX backend, so the line is noise for our users.
     from mujoco import mjx  # noqa: E402
+from mujoco.mjx._src import solver as _mjx_solver  # noqa: E402
 
-__all__ = ["mjx", "step1", "step2", "legacy_substeps", "put_model"]
+__all__ = ["mjx", "step1", "step2", "legacy_substeps", "put_model", "solve", "forward", "step",
+           "linesearch_loop"]
+
+
+# -- the constraint solver's line search: a while loop, not a scan of ls_iterations ------
+# MJX runs the line search of every Newton iteration as a `lax.scan` of `opt.ls_iterations`
+# (50 in dm_control's models) whose body is a `lax.cond` that stops doing work once the
+# search has converged: the scan keeps reverse-mode autodiff possible. Under `vmap` the cond
+# becomes a select, so all 50 bodies run for every env on every Newton iteration, although
+# C MuJoCo needs 1.7-2.6 line-search evaluations per iteration on these tasks. That was
+# 78% of a cheetah substep at batch 128. A `lax.while_loop` on the same condition runs
+# only until every env of the batch has converged and returns the same values bit for bit
+# (the finished iterations of the scan are no-ops); it is not reverse-differentiable, which
+# no task needs. The swap holds only while the solver is traced, under a lock so a trace
+# of the plain MJX solver in another thread cannot see it.
+_MJX_LINESEARCH_LOOP = _mjx_solver._while_loop_scan
+_LINESEARCH_LOCK = threading.RLock()
+
+
+def _while_loop(cond_fun, body_fun, init_val, max_iter):
+    del max_iter  # the condition itself stops at opt.ls_iterations
+    return jax.lax.while_loop(cond_fun, body_fun, init_val)
+
+
+_LINESEARCH_LOOPS = {"while": _while_loop, "scan": _MJX_LINESEARCH_LOOP}
+_linesearch_loop = "while"
+
+
+@contextlib.contextmanager
+def linesearch_loop(kind: str):
+    """Traces `solve`/`forward`/`step` inside the block with the line search as `kind`:
+    "while" (the default) or "scan" (MJX's own), for benchmarks and the equality test."""
+    global _linesearch_loop
+    if kind not in _LINESEARCH_LOOPS:
+        raise ValueError(f"linesearch loop {kind!r}: one of {sorted(_LINESEARCH_LOOPS)}")
+    previous, _linesearch_loop = _linesearch_loop, kind
+    try:
+        yield
+    finally:
+        _linesearch_loop = previous
+
+
+@contextlib.contextmanager
+def _traced_linesearch():
+    with _LINESEARCH_LOCK:
+        previous = _mjx_solver._while_loop_scan
+        _mjx_solver._while_loop_scan = _LINESEARCH_LOOPS[_linesearch_loop]
+        try:
+            yield
+        finally:
+            _mjx_solver._while_loop_scan = previous
+
+
+def solve(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """`mjx.solve` with the line search as a while loop (same result, see above)."""
+    with _traced_linesearch():
+        return mjx.solve(m, d)
+
+
+def forward(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """`mjx.forward` with the line search as a while loop."""
+    with _traced_linesearch():
+        return mjx.forward(m, d)
+
+
+def step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """`mjx.step` with the line search as a while loop."""
+    with _traced_linesearch():
+        return mjx.step(m, d)
 
 
 def put_model(model: mujoco.MjModel) -> mjx.Model:
@@ -46,7 +116,7 @@ def step2(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     if d._impl.efc_J.size == 0:  # no constraint rows: same shortcut as mjx.forward
         d = d.replace(qacc=d.qacc_smooth)
     else:
-        d = mjx.solve(m, d)
+        d = solve(m, d)
         d = mjx.sensor_acc(m, d)
     integrator = mujoco.mjtIntegrator(int(m.opt.integrator))
     if integrator == mujoco.mjtIntegrator.mjINT_EULER:

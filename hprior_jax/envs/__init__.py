@@ -81,16 +81,26 @@ class VecEnv:
         return next_state, transition
 
 
-def make_env(task_name: str, num_envs: int = 1) -> VecEnv:
-    return VecEnv(tasks.make(task_name), num_envs)
+def make_env(task_name: str, num_envs: int = 1, **task_options) -> VecEnv:
+    return VecEnv(tasks.make(task_name, **task_options), num_envs)
+
+
+def task_options(cfg) -> dict:
+    """The port options a run configuration asks for (`contacts` on DM Control tasks)."""
+    if task_info(cfg.task).domain == "dm_control":
+        return {"contacts": cfg.contacts}
+    if cfg.contacts != "floor":
+        raise ValueError(f"--contacts {cfg.contacts}: only the DM Control ports have "
+                         f"self-collision pairs to keep ({cfg.task} has explicit pairs)")
+    return {}
 
 
 def task_names() -> list[str]:
     return tasks.names()
 
 
-def get_task(task_name: str) -> Task:
-    return tasks.make(task_name)
+def get_task(task_name: str, **task_options) -> Task:
+    return tasks.make(task_name, **task_options)
 
 
 def task_info(task_name: str) -> tasks.TaskInfo:

@@ -49,10 +49,9 @@ def episode_states(engine, actor_params, keys: jax.Array,
                    deterministic: bool = True) -> dict[str, np.ndarray]:
     """Whole episodes' physics states [N, T + 1, ...] (the first after reset), one per key
     in `keys` [N, 2], with the deterministic (tanh of the mean) or the sampling policy."""
-    from hprior_jax.envs import make_env
     from hprior_jax.render import FIELDS
 
-    env = make_env(engine.cfg.task, num_envs=1)
+    env = engine.env  # one env, with the run's task options
 
     def snapshot(state):
         return {k: getattr(state.task.data, k)[0] for k in FIELDS}

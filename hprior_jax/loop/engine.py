@@ -18,7 +18,7 @@ import numpy as np
 
 from hprior_jax.agents.sac import SAC
 from hprior_jax.buffers import replay
-from hprior_jax.envs import make_env
+from hprior_jax.envs import make_env, task_options
 from hprior_jax.evaluate import evaluate_policy
 from hprior_jax.loop.state import RunState
 from hprior_jax.methods import registry
@@ -27,8 +27,8 @@ from hprior_jax.methods import registry
 class Engine:
     def __init__(self, cfg):
         self.cfg = cfg
-        self.env = make_env(cfg.task, num_envs=1)
-        self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes)
+        self.env = make_env(cfg.task, num_envs=1, **task_options(cfg))
+        self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes, **task_options(cfg))
         self.task = self.env.task
         self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
         self._compiled: dict = {}

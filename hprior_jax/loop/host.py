@@ -105,7 +105,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 for i, s in enumerate(seeds):
                     log.log_eval(step, s, float(np.mean(returns[i])),
                                  float(np.mean(successes[i])) if has_success else None)
-                bar.evaluated(np.mean(returns), np.mean(successes))
+                bar.evaluated(np.mean(returns), np.mean(successes), timer.seconds["eval_s"])
             stop = interrupt.requested  # read once: a checkpoint is written for every stop
             if step % cfg.checkpoint_every == 0 or step == cfg.steps or stop or (
                     max_chunks is not None and chunks == max_chunks):
@@ -217,7 +217,8 @@ class _InterruptRequest:
 class _ProgressBar:
     """tqdm with one rate, env steps per second over all seeds, from the wall time of the
     training parts only (compiles excluded), and the ETA from that rate; the latest
-    evaluation (return, and success rate where the task has one) beside it."""
+    evaluation (return, and success rate where the task has one) beside it, and the share
+    of that wall time evaluation has taken so far (its cost: see `--num-eval-episodes`)."""
 
     def __init__(self, total: int, initial: int, enabled: bool, num_seeds: int,
                  has_success: bool):
@@ -225,7 +226,7 @@ class _ProgressBar:
 
         self.total, self.done, self.num_seeds = total, initial, num_seeds
         self.has_success = has_success
-        self.steps, self.seconds = 0, 0.0
+        self.steps, self.seconds, self.eval_seconds = 0, 0.0, 0.0
         self._eval = ""
         self._bar = tqdm(total=total, initial=initial, unit="step", disable=not enabled,
                          dynamic_ncols=True, mininterval=1.0,
@@ -237,11 +238,14 @@ class _ProgressBar:
         self.seconds += seconds
         rate = self.steps / max(self.seconds, 1e-9)  # per seed
         eta = (self.total - self.done) / rate
+        cost = (f" (evaluation {100 * self.eval_seconds / self.seconds:.0f}% of the time)"
+                if self.eval_seconds else "")
         self._bar.set_postfix_str(f"{rate * self.num_seeds:.0f} env steps/s, ETA "
-                                  f"{_clock(eta)}{self._eval}", refresh=False)
+                                  f"{_clock(eta)}{self._eval}{cost}", refresh=False)
         self._bar.update(length)
 
-    def evaluated(self, mean_return: float, mean_success: float) -> None:
+    def evaluated(self, mean_return: float, mean_success: float, seconds: float) -> None:
+        self.eval_seconds += seconds
         self._eval = f", eval return {mean_return:.1f}"
         if self.has_success:
             self._eval += f", success {100 * mean_success:.0f}%"

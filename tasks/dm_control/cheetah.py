@@ -31,9 +31,10 @@ class CheetahRun(DMControlTask):
     name = "cheetah_run"
     obs_size = 17
 
-    def __init__(self):
+    def __init__(self, contacts: str = "floor"):
         model = load_suite_model("cheetah")
-        super().__init__(model, control_timestep=model.opt.timestep, time_limit=TIME_LIMIT)
+        super().__init__(model, control_timestep=model.opt.timestep, time_limit=TIME_LIMIT,
+                         contacts=contacts)
         assert model.nq == model.njnt, "cheetah: every joint has one DOF"
         limited = np.flatnonzero(model.jnt_limited == 1)
         self._limited_qpos = jnp.asarray(model.jnt_qposadr[limited])

@@ -82,9 +82,10 @@ class QuadrupedWalk(DMControlTask):
     name = "quadruped_walk"
     obs_size = 78
 
-    def __init__(self, desired_speed: float = WALK_SPEED):
+    def __init__(self, desired_speed: float = WALK_SPEED, contacts: str = "floor"):
         model = load_quadruped_model(floor_size=TIME_LIMIT * WALK_SPEED)
-        super().__init__(model, control_timestep=CONTROL_TIMESTEP, time_limit=TIME_LIMIT)
+        super().__init__(model, control_timestep=CONTROL_TIMESTEP, time_limit=TIME_LIMIT,
+                         contacts=contacts)
         self.desired_speed = desired_speed
         self._torso = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         hinges = np.flatnonzero(model.jnt_type == int(mujoco.mjtJoint.mjJNT_HINGE))

@@ -41,9 +41,10 @@ class WalkerWalk(DMControlTask):
     name = "walker_walk"
     obs_size = 24
 
-    def __init__(self, move_speed: float = WALK_SPEED):
+    def __init__(self, move_speed: float = WALK_SPEED, contacts: str = "floor"):
         model = load_suite_model("walker")
-        super().__init__(model, control_timestep=CONTROL_TIMESTEP, time_limit=TIME_LIMIT)
+        super().__init__(model, control_timestep=CONTROL_TIMESTEP, time_limit=TIME_LIMIT,
+                         contacts=contacts)
         self.move_speed = move_speed
         self._torso = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         # randomize_limited_and_rotational_joints, restricted to the joint kinds walker has

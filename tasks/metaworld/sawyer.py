@@ -74,7 +74,7 @@ import mujoco
 import numpy as np
 
 from tasks.base import Task, TaskState
-from tasks.physics import mjx, put_model
+from tasks.physics import mjx, put_model, step as physics_step
 
 FRAME_SKIP = 5
 EPISODE_LENGTH = 500  # SawyerXYZEnv.max_path_length
@@ -667,7 +667,7 @@ class SawyerTask(Task):
             ctrl=jnp.stack([action[3], -action[3]]),
         )
         model = self.model_for(state.info)
-        data = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, d: mjx.step(model, d), data)
+        data = jax.lax.fori_loop(0, FRAME_SKIP, lambda _, d: physics_step(model, d), data)
         data = mjx.kinematics(model, data)
         curr = self.current_obs(data)
         obs = self.observe(curr, state.info["prev_obs"], state.info["target_pos"])

@@ -1,0 +1,102 @@
+"""The two speed-ups of the DM Control ports that must not change their physics.
+
+- `tasks.physics` traces MJX's constraint line search as a while loop: the result must be
+  the scan's, bit for bit, on states with active contacts.
+- `contacts="floor"` drops the self-collision pairs: every floor pair stays with the same
+  contact parameters, and a C MuJoCo trajectory is unchanged (no self contact occurs).
+"""
+import itertools
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+import tasks
+from hprior_jax.config import RunConfig
+from hprior_jax.envs import task_options
+from tasks import physics
+from tasks.dm_control.common import floor_contacts_only
+
+DMC = ["cheetah_run", "walker_walk", "quadruped_walk"]
+
+
+def _collides(m: mujoco.MjModel, g1: int, g2: int) -> bool:
+    """MuJoCo's contype/conaffinity filter for two geoms of different bodies."""
+    return bool(m.geom_contype[g1] & m.geom_conaffinity[g2]
+                or m.geom_contype[g2] & m.geom_conaffinity[g1])
+
+
+@pytest.mark.parametrize("name", DMC)
+def test_floor_contacts_keep_every_floor_pair_and_no_other(name):
+    full = tasks.make(name, contacts="all").mj_model
+    floor = floor_contacts_only(full)
+    world = set(np.flatnonzero(full.geom_bodyid == 0).tolist())
+    pairs = [(a, b) for a, b in itertools.combinations(range(full.ngeom), 2)
+             if full.geom_bodyid[a] != full.geom_bodyid[b]]
+    kept = {p for p in pairs if _collides(floor, *p)}
+    assert kept == {p for p in pairs if _collides(full, *p) and world & set(p)}
+    assert kept, "the floor must still collide with the body"
+    self_pairs = [p for p in pairs if _collides(full, *p) and not world & set(p)]
+    if name != "walker_walk":  # walker's XML already has no self pairs
+        assert self_pairs, "nothing was removed: the test would not see a change"
+
+
+@pytest.mark.parametrize("name", ["cheetah_run", "quadruped_walk"])
+def test_floor_contacts_leave_a_c_trajectory_unchanged(name):
+    """C MuJoCo, 300 steps of bang-bang actions from the same state on both models: the
+    same states bit for bit (same floor contacts, same mixed parameters)."""
+    full = tasks.make(name, contacts="all").mj_model
+    floor = floor_contacts_only(full)
+    rng = np.random.RandomState(0)
+    data = [mujoco.MjData(m) for m in (full, floor)]
+    for d in data:
+        d.qpos[:] = full.qpos0
+        d.qpos[2] += 0.3 if name == "quadruped_walk" else 0.0  # let the body drop and land
+    touched = 0
+    for _ in range(300):
+        ctrl = np.where(rng.rand(full.nu) < 0.5, *full.actuator_ctrlrange.T)
+        for m, d in zip((full, floor), data):
+            d.ctrl[:] = ctrl
+            mujoco.mj_step(m, d)
+        touched += data[0].ncon > 0
+        np.testing.assert_array_equal(data[0].qpos, data[1].qpos)
+        assert data[0].ncon == data[1].ncon
+    assert touched > 100, "the trajectory must be in contact with the floor"
+
+
+def test_linesearch_while_loop_equals_mjx_scan():
+    """`physics.forward` (line search as a while loop) and MJX's own scan, on cheetah poses
+    lowered until one or both feet are 2-17 cm into the floor: the same accelerations and constraint forces, bit for bit."""
+    task = tasks.make("cheetah_run")
+    rootz = task.mj_model.jnt_qposadr[mujoco.mj_name2id(task.mj_model, mujoco.mjtObj.mjOBJ_JOINT,
+                                                         "rootz")]
+    base = physics.mjx.make_data(task.model)
+    data = jax.vmap(lambda z: base.replace(qpos=base.qpos.at[rootz].set(z)))(
+        jax.numpy.linspace(-0.25, -0.1, 4))
+
+    def forward(kind):
+        with physics.linesearch_loop(kind):
+            return jax.jit(jax.vmap(lambda d: physics.forward(task.model, d)))(data)
+
+    a, b = forward("while"), forward("scan")
+    assert np.asarray(a._impl.contact.dist < 0).sum() >= 4, "no active contact to solve"
+    assert np.abs(np.asarray(a._impl.efc_force)).max() > 1.0
+    np.testing.assert_array_equal(np.asarray(a.qacc), np.asarray(b.qacc))
+    np.testing.assert_array_equal(np.asarray(a._impl.efc_force), np.asarray(b._impl.efc_force))
+    with pytest.raises(ValueError, match="linesearch loop"):
+        with physics.linesearch_loop("fori"):
+            pass
+
+
+def test_runs_before_the_contacts_option_restore_with_all_contacts():
+    d = RunConfig(task="cheetah_run", algo="sac").to_json()
+    import json
+
+    old = {k: v for k, v in json.loads(d).items() if k != "contacts"}
+    assert RunConfig.from_dict(old).contacts == "all"
+    assert RunConfig.from_dict(json.loads(d)).contacts == "floor"
+    assert task_options(RunConfig(task="cheetah_run", algo="sac")) == {"contacts": "floor"}
+    assert task_options(RunConfig(task="drawer_open", algo="sac")) == {}
+    with pytest.raises(ValueError, match="only the DM Control ports"):
+        task_options(RunConfig(task="drawer_open", algo="sac", contacts="all"))
