@@ -9,7 +9,9 @@ best of `--repeats` runs is reported. Reference: the same task in its own packag
 REFERENCES so other domains (MetaWorld) can add theirs. `c_over_mjx` = reference env-steps/s
 divided by MJX env-steps/s summed over the batch (>1: MJX slower). `--linesearch while scan`
 also times each batch with MJX's own scan line-search loop (the reference for the while loop
-the ports trace by default, see tasks/physics.py), interleaved in the same run. Writes
+the ports trace by default, see tasks/physics.py), and `--contacts floor all` the DM Control
+ports with dm_control's self-collision pairs kept (the ports' option), in the same run;
+`--variants LOOP:CONTACTS ...` names the combinations to time (default: the ports' defaults). Writes
 benchmarks/results/env_throughput.csv and prints a table.
 """
 from __future__ import annotations
@@ -103,22 +105,25 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=50, help="control steps per timed rollout")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--ref-steps", type=int, default=2000)
-    parser.add_argument("--linesearch", nargs="+", default=["while"], choices=["while", "scan"],
-                        help="line-search loops to time (tasks.physics.linesearch_loop)")
+    parser.add_argument("--variants", nargs="+", default=["while:floor"],
+                        help="LOOP:CONTACTS to time: line-search loop while|scan "
+                             "(tasks.physics.linesearch_loop), contacts floor|all (DM Control)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
     device = f"{jax.devices()[0].platform}:{os.cpu_count()}cpu:{platform.processor() or platform.machine()}"
     rows = []
     for name in args.tasks:
-        task = tasks.make(name)
-        ref = REFERENCES[task.domain](name, args.ref_steps, 0)
-        for batch, loop in ((b, loop) for b in args.batch for loop in args.linesearch):
+        ref = REFERENCES[tasks.info(name).domain](name, args.ref_steps, 0)
+        for batch, variant in ((b, v) for b in args.batch for v in args.variants):
+            loop, contacts = variant.split(":")
+            options = {"contacts": contacts} if tasks.info(name).domain == "dm_control" else {}
+            task = tasks.make(name, **options)
             with physics.linesearch_loop(loop):
                 compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats)
             sps = batch * args.steps / run_s
             rows.append(dict(
-                task=name, batch=batch, linesearch=loop, steps=args.steps,
+                task=name, batch=batch, linesearch=loop, contacts=contacts, steps=args.steps,
                 n_sub_steps=task.n_sub_steps,
                 compile_s=round(compile_s, 2), run_s=round(run_s, 4),
                 mjx_env_steps_per_s=round(sps, 1),
@@ -133,7 +138,7 @@ def main(argv=None):
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    cols = ["task", "batch", "linesearch", "compile_s", "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
+    cols = ["task", "batch", "linesearch", "contacts", "compile_s", "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
     print("\n" + " | ".join(f"{c:>20}" for c in cols))
     for r in rows:
         print(" | ".join(f"{str(r[c]):>20}" for c in cols))

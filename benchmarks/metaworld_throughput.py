@@ -8,7 +8,9 @@ reported apart. C: metaworld's `env.step` (gymnasium, 5 x mj_step + obs + reward
 core, random actions. Writes benchmarks/results/metaworld_throughput.csv.
 
 `--variant arm|free` builds the port with that scene (tasks/metaworld/sawyer.py) instead of
-the registered one and labels the rows with it (column `scene`).
+the registered one and labels the rows with it (column `scene`). `--linesearch scan` traces
+MJX's own line-search loop instead of the ports' while loop (tasks/physics.py; column
+`linesearch`), the reference for that change.
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ import jax
 import numpy as np
 
 from benchmarks._timing import read_rows, write_rows
+from tasks import physics
 from tasks.metaworld.reference import make_env, metaworld_version
 
 TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
@@ -76,6 +79,7 @@ def main():
     p.add_argument("--wrist", default=None, help="box or a number of hull points")
     p.add_argument("--label", default=None, help="scene label (default: variant/registered)")
     p.add_argument("--no-c", action="store_true", help="skip metaworld's C env timing")
+    p.add_argument("--linesearch", default="while", choices=["while", "scan"])
     args = p.parse_args()
     from benchmarks.metaworld_dynamics import make_task
 
@@ -85,8 +89,10 @@ def main():
     for name in names:
         task = make_task(name, args.variant, args.wrist)
         m = task.mj_model
-        rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats)
-        row = dict(task=name, scene=label, batch=args.batch, scan_steps=args.steps,
+        with physics.linesearch_loop(args.linesearch):
+            rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats)
+        row = dict(task=name, scene=label, linesearch=args.linesearch, batch=args.batch,
+                   scan_steps=args.steps,
                    mjx_env_steps_per_s=round(rate, 1), mjx_substeps_per_s=round(5 * rate, 1),
                    compile_s=round(compile_s, 1),
                    c_env_steps_per_s=None if args.no_c else round(c_rate(name), 1),
@@ -96,7 +102,8 @@ def main():
         print(row, flush=True)
         rows.append(row)
     rerun = lambda r: (r["task"] in names and r["batch"] == str(args.batch)
-                       and r.get("scene", "registered") == label)
+                       and r.get("scene", "registered") == label
+                       and (r.get("linesearch") or "scan") == args.linesearch)
     write_rows(rows, Path(args.out), keep=[r for r in read_rows(Path(args.out)) if not rerun(r)])
 
 

@@ -43,7 +43,7 @@ commands:
 def _train(argv: list[str]) -> int:
     argv = _expand_aliases(argv)
     pre = argparse.ArgumentParser(add_help=False)
-    for name in ("--task", "--algo", "--preset", "--resume", "--teacher"):
+    for name in ("--task", "--algo", "--preset", "--resume", "--teacher", "--eval-budget"):
         pre.add_argument(name, default=None)
     pre.add_argument("--no-progress", action="store_true")
     known, rest = pre.parse_known_args(argv)
@@ -61,6 +61,8 @@ def _train(argv: list[str]) -> int:
         saved = run_dirs.load_run_config(run_dir)
         default = (saved if known.teacher is None
                    else presets.with_teacher(saved, known.teacher))
+        if known.eval_budget is not None:
+            default = presets.with_eval_budget(default, known.eval_budget)
         requested = _parse_config(default, _tyro_args(argv))
         cfg, saved_capacity = run_dirs.resume_config(run_dir, requested)
         enable_compilation_cache()
@@ -70,6 +72,8 @@ def _train(argv: list[str]) -> int:
         default = presets.train_preset(task, algo, known.preset or DEFAULT_PRESET)
         if known.teacher is not None:
             default = presets.with_teacher(default, known.teacher)
+        if known.eval_budget is not None:
+            default = presets.with_eval_budget(default, known.eval_budget)
         cfg = _parse_config(default, rest if help_asked else _tyro_args(argv),
                             description=_train_description(algo))
         cfg = dataclasses.replace(cfg, out=str(run_dirs.run_dir_path(cfg)))
@@ -116,7 +120,8 @@ def _train_description(algo: str) -> str:
     return (f"Train an agent on an MJX task (--algo {algo}). Also: --task "
             f"{{{','.join(task_names())}}}; --algo {{{','.join(registry.names())}}}; "
             "--preset {paper,reduced,smoke}; --teacher "
-            f"{{{','.join(sorted(TEACHERS))}}} (a B-Pref teacher); --no-progress (no progress "
+            f"{{{','.join(sorted(TEACHERS))}}} (a B-Pref teacher); --eval-budget {{paper,cpu}} "
+            "(cpu: 5 evaluation episodes every 10k steps; see README); --no-progress (no progress "
             "bar); --resume DIR continues an interrupted run, where only --steps, --eval-every, "
             "--checkpoint-every and --num-eval-episodes may change. Ctrl-C once finishes the "
             "chunk in flight and saves a checkpoint; twice stops at once.")
@@ -126,7 +131,7 @@ def _tyro_args(argv: list[str]) -> list[str]:
     """argv less the options the pre-parser owns (tyro knows --task/--algo/--preset as
     config fields, but not these)."""
     out = [a for a in argv if a != "--no-progress"]
-    for name in ("--teacher", "--resume"):
+    for name in ("--teacher", "--resume", "--eval-budget"):
         out = _drop_option(out, name)
     return out
 
@@ -294,6 +299,8 @@ def _grid(argv: list[str]) -> int:
                              "paper; see README: Presets). --budget is an older name")
     parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
     parser.add_argument("--eval-every", type=int, default=None)
+    parser.add_argument("--eval-budget", default="paper", choices=("paper", "cpu"),
+                        help="cpu: 5 evaluation episodes every 10k steps (see README)")
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -301,8 +308,11 @@ def _grid(argv: list[str]) -> int:
     from hprior_jax.loop import host
     from hprior_jax.setup_jax import enable_compilation_cache
 
-    overrides = {k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
-                 if v is not None}
+    from hprior_jax.presets import EVAL_BUDGETS
+
+    overrides = dict(EVAL_BUDGETS[args.eval_budget])
+    overrides.update({k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
+                      if v is not None})
     enable_compilation_cache()
     try:
         run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,

@@ -61,6 +61,20 @@ def train_preset(task: str, algo: str = registry.DEFAULT, preset: str = "paper",
     return config_class(algo)(**cfg)
 
 
+# Evaluation budgets (`hprior train|grid --eval-budget`). `paper` keeps the preset's: 10
+# deterministic episodes per seed, as BPref and the appendix report. `cpu` evaluates 5
+# episodes every 10k steps, for CPU runs where MJX evaluation is a large share of the wall
+# time; its curves are noisier and not comparable point for point with the paper's.
+EVAL_BUDGETS = {"paper": {}, "cpu": dict(num_eval_episodes=5, eval_every=10_000)}
+
+
+def with_eval_budget(cfg: RunConfig, name: str) -> RunConfig:
+    if name not in EVAL_BUDGETS:
+        raise ValueError(f"unknown evaluation budget {name!r}; available: "
+                         f"{', '.join(EVAL_BUDGETS)}")
+    return dataclasses.replace(cfg, **EVAL_BUDGETS[name])
+
+
 def with_teacher(cfg: RunConfig, name: str) -> RunConfig:
     """`cfg` with a B-Pref teacher preset (oracle, noisy, mistake, skip, myopic, equal)."""
     from hprior_jax.pbrl.teacher import PRESETS as TEACHERS

@@ -250,6 +250,22 @@ def test_progress_bar_has_one_rate_and_an_eta(capsys):
     assert "success 50%" in line and "evaluation 20% of the time" in line, line
 
 
+def test_eval_budget_cpu_halves_episodes_and_cadence(tmp_path, monkeypatch, capsys):
+    runs = []
+    monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))
+    base = ["train", "--task", "toy_point", "--preset", "reduced", "--algo", "sac"]
+    assert cli.main([*base, "--out", str(tmp_path / "a")]) == 0
+    assert cli.main([*base, "--eval-budget", "cpu", "--out", str(tmp_path / "b")]) == 0
+    assert cli.main([*base, "--eval-budget=cpu", "--num-eval-episodes", "3",
+                     "--out", str(tmp_path / "c")]) == 0  # an explicit flag still wins
+    paper, cpu, explicit = runs
+    assert paper.num_eval_episodes == 10 and paper.eval_every != 10_000
+    assert (cpu.num_eval_episodes, cpu.eval_every) == (5, 10_000)
+    assert (explicit.num_eval_episodes, explicit.eval_every) == (3, 10_000)
+    assert cli.main([*base, "--eval-budget", "tiny", "--out", str(tmp_path / "d")]) == 2
+    assert "unknown evaluation budget 'tiny'" in capsys.readouterr().err
+
+
 def test_cli_accepts_flag_equals_value_and_lists_its_options(tmp_path, capsys, monkeypatch):
     runs = []
     monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))

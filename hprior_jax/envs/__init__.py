@@ -86,13 +86,14 @@ def make_env(task_name: str, num_envs: int = 1, **task_options) -> VecEnv:
 
 
 def task_options(cfg) -> dict:
-    """The port options a run configuration asks for (`contacts` on DM Control tasks)."""
-    if task_info(cfg.task).domain == "dm_control":
-        return {"contacts": cfg.contacts}
-    if cfg.contacts != "floor":
+    """The port options a run configuration asks for beyond the ports' defaults (so the
+    default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control."""
+    if cfg.contacts == "floor":
+        return {}
+    if task_info(cfg.task).domain != "dm_control":
         raise ValueError(f"--contacts {cfg.contacts}: only the DM Control ports have "
                          f"self-collision pairs to keep ({cfg.task} has explicit pairs)")
-    return {}
+    return {"contacts": cfg.contacts}
 
 
 def task_names() -> list[str]:

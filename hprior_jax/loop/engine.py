@@ -153,8 +153,18 @@ class Engine:
 
     def run_eval(self, rs: RunState, seeds, step: int):
         keys = jnp.stack([eval_key(s, step) for s in seeds])
-        fn = jax.jit(jax.vmap(self.evaluate))
+        fn = jax.jit(partial(over_seeds, self.evaluate))
         return self.compile("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
+
+
+def over_seeds(fn, *args):
+    """`fn` for every seed (leading axis of `args`): one seed after the other on CPU, where
+    MJX gains nothing from a wider batch and loses cache locality (cheetah, 5 seeds x 10
+    episodes: 5.4x one seed's evaluation with `lax.map`, 6.5x vmapped, 5.9x as one flat
+    batch of 50 envs); vmapped on accelerators."""
+    if jax.default_backend() == "cpu":
+        return jax.lax.map(lambda a: fn(*a), args)
+    return jax.vmap(fn)(*args)
 
 
 def eval_key(seed: int, step: int) -> jax.Array:

@@ -96,7 +96,9 @@ def test_runs_before_the_contacts_option_restore_with_all_contacts():
     old = {k: v for k, v in json.loads(d).items() if k != "contacts"}
     assert RunConfig.from_dict(old).contacts == "all"
     assert RunConfig.from_dict(json.loads(d)).contacts == "floor"
-    assert task_options(RunConfig(task="cheetah_run", algo="sac")) == {"contacts": "floor"}
+    assert task_options(RunConfig(task="cheetah_run", algo="sac")) == {}  # the ports' default
+    assert task_options(RunConfig(task="cheetah_run", algo="sac", contacts="all")) == {
+        "contacts": "all"}
     assert task_options(RunConfig(task="drawer_open", algo="sac")) == {}
     with pytest.raises(ValueError, match="only the DM Control ports"):
         task_options(RunConfig(task="drawer_open", algo="sac", contacts="all"))
