@@ -44,7 +44,7 @@ def floor_contacts_only(model: mujoco.MjModel) -> mujoco.MjModel:
     model = copy.copy(model)
     contype, conaffinity = model.geom_contype.copy(), model.geom_conaffinity.copy()
     floor = np.flatnonzero(model.geom_bodyid == 0)
-    free_bit = 1 << int(np.log2(max(int(contype.max() | conaffinity.max()), 1)) + 1)
+    free_bit = 1 << int(contype.max() | conaffinity.max()).bit_length()  # a bit no geom uses
     for g in np.flatnonzero(model.geom_bodyid != 0):
         touches_floor = any(contype[g] & conaffinity[f] or contype[f] & conaffinity[g]
                             for f in floor)
