@@ -284,6 +284,19 @@ def test_cli_accepts_flag_equals_value_and_lists_its_options(tmp_path, capsys, m
         assert word in text
 
 
+def test_grid_passes_eval_budget_and_contacts_as_overrides(tmp_path, monkeypatch):
+    from hprior_jax.experiments import grid
+
+    seen = []
+    monkeypatch.setattr(grid, "run_grid", lambda out, tasks, algos, seeds, preset, overrides,
+                        **k: seen.append(overrides))
+    assert cli.main(["grid", "--tasks", "toy_point", "--out", str(tmp_path)]) == 0
+    assert cli.main(["grid", "--tasks", "toy_point", "--eval-budget", "cpu", "--contacts",
+                     "all", "--eval-every", "3000", "--out", str(tmp_path)]) == 0
+    assert seen == [{"contacts": "floor"},
+                    {"contacts": "all", "num_eval_episodes": 5, "eval_every": 3000}]
+
+
 def test_grid_and_train_share_the_preset_flag_and_default(tmp_path, monkeypatch):
     from hprior_jax.experiments import grid
 
