@@ -10,8 +10,8 @@ alone as `vmap(stage)` over a batch of states taken from random-action rollouts 
 are present) and timed on that batch (best of `--repeats`, after a warm-up call). The whole
 substep is timed the same way, so `sum_over_whole` says how much the cut itself costs:
 each stage alone also reads and writes the whole batched `Data` (about 1 ms at batch 128
-on 2 cores), so a stage's time is an upper bound, and the ranking matters more than the sum. Also printed: the contact and
-constraint-row counts MJX allocates and how many contacts are active in the sample; and, as
+on 2 cores), so a stage's time is an upper bound, and the ranking matters more than the
+sum. Also printed: the contact and constraint-row counts MJX allocates and how many contacts are active in the sample; and, as
 the reference in the same run, the substep and the solve traced with MJX's own line-search
 loop (`tasks.physics.linesearch_loop("scan")`). Writes benchmarks/results/env_profile.csv.
 
@@ -26,7 +26,6 @@ ports' default `contacts="floor"` leaves out. Writes benchmarks/results/contact_
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 from pathlib import Path
 
@@ -38,6 +37,7 @@ import mujoco
 import numpy as np
 from mujoco.mjx._src import collision_driver, constraint, forward, sensor, smooth
 
+from benchmarks._timing import write_rows
 from tasks import physics
 from tasks.physics import mjx
 
@@ -107,7 +107,7 @@ def profile_task(name: str, batch: int, warm_steps: int, repeats: int) -> list[d
     ncon = int(impl.contact.dist.shape[-1]) if impl.contact.dist.ndim > 1 else 0
     active = float(np.mean(np.sum(np.asarray(impl.contact.dist) < 0, axis=-1))) if ncon else 0.0
     nefc = int(impl.efc_J.shape[-2]) if impl.efc_J.ndim > 2 else 0
-    whole = lambda d: _substep(m, d)
+    whole = lambda d: physics.legacy_substeps(m, d, 1)
     _, whole_s = time_batched(whole, data, repeats)
     rows = []
     for stage, fn in substep_stages(m):
@@ -170,20 +170,6 @@ def contact_census(name: str, episodes: int, seed: int = 0,
     return rows
 
 
-def _write(rows: list[dict], path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {path}")
-
-
-def _substep(m, d):
-    from tasks.physics import step1, step2
-    return step1(m, step2(m, d))
-
-
 def main(argv=None):
     from benchmarks.dm_control_parity import SUITE_NAMES
 
@@ -201,7 +187,7 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.census:
-        _write([r for name in args.tasks for r in contact_census(name, args.episodes,
+        write_rows([r for name in args.tasks for r in contact_census(name, args.episodes,
                                                                  exported=tuple(args.exported))],
                args.out or CENSUS)
         return
@@ -218,7 +204,7 @@ def main(argv=None):
               f"{r0['mjx_scan_solve_ms']} ms")
         for r in sorted(task_rows, key=lambda r: -r["ms"]):
             print(f"  {r['stage']:>16} {r['ms']:9.3f} ms  {100 * r['share_of_whole']:5.1f}%")
-    _write(rows, args.out or RESULTS)
+    write_rows(rows, args.out or RESULTS)
 
 
 if __name__ == "__main__":

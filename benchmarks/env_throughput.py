@@ -7,12 +7,12 @@ drawn inside the scan, after a vmapped reset; the first call (compile) is timed 
 best of `--repeats` runs is reported. Reference: the same task in its own package (dm_control
 `env.step` with random actions, one Python env on one core), via a per-domain function in
 REFERENCES so other domains (MetaWorld) can add theirs. `c_over_mjx` = reference env-steps/s
-divided by MJX env-steps/s summed over the batch (>1: MJX slower). `--linesearch while scan`
-also times each batch with MJX's own scan line-search loop (the reference for the while loop
-the ports trace by default, see tasks/physics.py), and `--contacts floor all` the DM Control
-ports with dm_control's self-collision pairs kept (the ports' option), in the same run;
-`--variants LOOP:CONTACTS ...` names the combinations to time (default: the ports' defaults). Writes
-benchmarks/results/env_throughput.csv and prints a table.
+divided by MJX env-steps/s summed over the batch (>1: MJX slower). `--variants LOOP:CONTACTS
+...` times each batch once per combination, in the same run: LOOP `while` (the ports' line
+search, tasks/physics.py) or `scan` (MJX's own, the reference), CONTACTS `floor` (the ports'
+default) or `all` (dm_control's self-collision pairs kept; DM Control only). Default: the
+ports' defaults, `while:floor`. Writes benchmarks/results/env_throughput.csv and prints a
+table.
 """
 from __future__ import annotations
 

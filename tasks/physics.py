@@ -35,8 +35,9 @@ __all__ = ["mjx", "step1", "step2", "legacy_substeps", "put_model", "solve", "fo
 # 78% of a cheetah substep at batch 128. A `lax.while_loop` on the same condition runs
 # only until every env of the batch has converged and returns the same values bit for bit
 # (the finished iterations of the scan are no-ops); it is not reverse-differentiable, which
-# no task needs. The swap holds only while the solver is traced, under a lock so a trace
-# of the plain MJX solver in another thread cannot see it.
+# no task needs. The swap holds only while the solver is traced through `solve`, `forward`
+# or `step` below, under a lock so concurrent traces through them do not undo each other's
+# swap (a plain `mjx.solve` traced in another thread at that moment would see it).
 _MJX_LINESEARCH_LOOP = _mjx_solver._while_loop_scan
 _LINESEARCH_LOCK = threading.RLock()
 

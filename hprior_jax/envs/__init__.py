@@ -100,8 +100,8 @@ def task_names() -> list[str]:
     return tasks.names()
 
 
-def get_task(task_name: str, **task_options) -> Task:
-    return tasks.make(task_name, **task_options)
+def get_task(task_name: str) -> Task:
+    return tasks.make(task_name)
 
 
 def task_info(task_name: str) -> tasks.TaskInfo:

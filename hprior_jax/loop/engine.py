@@ -27,8 +27,9 @@ from hprior_jax.methods import registry
 class Engine:
     def __init__(self, cfg):
         self.cfg = cfg
-        self.env = make_env(cfg.task, num_envs=1, **task_options(cfg))
-        self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes, **task_options(cfg))
+        options = task_options(cfg)
+        self.env = make_env(cfg.task, num_envs=1, **options)
+        self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes, **options)
         self.task = self.env.task
         self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
         self._compiled: dict = {}

@@ -6,6 +6,7 @@
   contact parameters, and a C MuJoCo trajectory is unchanged (no self contact occurs).
 """
 import itertools
+import json
 
 import jax
 import mujoco
@@ -67,7 +68,8 @@ def test_floor_contacts_leave_a_c_trajectory_unchanged(name):
 
 def test_linesearch_while_loop_equals_mjx_scan():
     """`physics.forward` (line search as a while loop) and MJX's own scan, on cheetah poses
-    lowered until one or both feet are 2-17 cm into the floor: the same accelerations and constraint forces, bit for bit."""
+    lowered until one or both feet are 2-17 cm into the floor: the same accelerations and
+    constraint forces, bit for bit."""
     task = tasks.make("cheetah_run")
     rootz = task.mj_model.jnt_qposadr[mujoco.mj_name2id(task.mj_model, mujoco.mjtObj.mjOBJ_JOINT,
                                                          "rootz")]
@@ -91,8 +93,6 @@ def test_linesearch_while_loop_equals_mjx_scan():
 
 def test_runs_before_the_contacts_option_restore_with_all_contacts():
     d = RunConfig(task="cheetah_run", algo="sac").to_json()
-    import json
-
     old = {k: v for k, v in json.loads(d).items() if k != "contacts"}
     assert RunConfig.from_dict(old).contacts == "all"
     assert RunConfig.from_dict(json.loads(d)).contacts == "floor"
