@@ -231,6 +231,35 @@ def test_probe_learns_known_reward_and_stops_early():
     assert acc > 0.9, acc
 
 
+def test_term_gradient_ratio_is_the_terms_pull_against_the_ce():
+    """A term that repeats the CE on the same minibatch (its rows are the labels) with weight w
+    has ratio w; a term with weight 0 has ratio 0; an empty store gives 0."""
+    st = _filled_store(3, 37, CAP_T)
+    p0 = re.init_reward_ensemble(jax.random.key(4), DS, DA, SMALL)
+
+    def ce_again(s1, s2, labels, mask, params):
+        return P.bt_loss_from_returns(s1.sum(-1), s2.sum(-1), labels, mask)[0]
+
+    def reward_l2(s1, s2, rows, mask, params):
+        return jnp.mean(s1 ** 2)
+
+    terms = (P.RewardTerm("copy/loss", 2.5, ce_again, st.labels),
+             P.RewardTerm("off/loss", 0.0, reward_l2, st.labels),
+             P.RewardTerm("l2/loss", 1.0, reward_l2, st.labels))
+    ratios = jax.jit(partial(P.term_gradient_ratios, reward_cfg=SMALL, cfg=CFG_T, terms=terms))
+    r = ratios(p0, st, jax.random.key(0))
+    np.testing.assert_allclose(r["copy/loss/grad_ratio"], 2.5, rtol=1e-5)
+    assert float(r["off/loss/grad_ratio"]) == 0.0
+    assert float(r["l2/loss/grad_ratio"]) > 0.0
+    empty = ps.init(H, DS, DA, capacity=CAP_T)
+    assert all(float(v) == 0.0 for v in ratios(p0, empty, jax.random.key(0)).values())
+    # train_reward logs them, measured where the round's update starts
+    tx = P.make_optimizer(CFG_T)
+    _, _, m = jax.jit(partial(P.train_reward, tx=tx, reward_cfg=SMALL, cfg=CFG_T,
+                               terms=terms[:1]))(p0, tx.init(p0), st, jax.random.key(2))
+    np.testing.assert_allclose(m["copy/loss/grad_ratio"], 2.5, rtol=1e-5)
+
+
 def test_train_reward_vmaps_over_seeds():
     stores = [_filled_store(i, n, CAP_T) for i, n in ((0, 40), (1, 17))]
     params = [re.init_reward_ensemble(jax.random.key(10 + i), DS, DA, SMALL) for i in range(2)]

@@ -93,8 +93,15 @@ def test_prior_logs_world_model_and_credit_diagnostics(runs):
         assert 0.0 < r["prior/attention_entropy"] <= 1.0 + 1e-6
         assert 0.0 <= r["prior/target_out_of_range"] <= 1.0
         assert r["prior/loss"] >= 0.0 and "reward/true_corr" in r
+        assert r["prior/loss/grad_ratio"] > 0.0  # λ = 5: the prior pulls against the CE
     wm = [r for r in records if "prior/wm_dyn_loss" in r]
     assert [r["step"] for r in wm] == [40, 60]
+    for r in wm:  # the world-model diagnostics after each update (prior.diagnostics)
+        assert r["prior/wm/persistence_error"] > 0.0 and r["prior/wm/mean_state_error"] > 0.0
+        np.testing.assert_allclose(r["prior/wm/skill_vs_persistence"], 1.0 - r[
+            "prior/wm/next_obs_error"] / r["prior/wm/persistence_error"], rtol=1e-4)
+        assert 0.0 <= r["prior/alpha/position_r2"] <= 1.0
+        assert 0.0 <= r["prior/alpha/shuffle_tv_position"] <= 1.0
     assert "prior/wm_obs_loss" in wm[0] and "prior/wm_obs_loss" not in wm[1]  # dynamics only
     assert all(r["perf/world_model_s"] > 0 for r in wm)
     # the host loop times each event (rounds at 40, 80; world model at 40, 60) and logs it

@@ -233,6 +233,8 @@ class Lab:
         metrics = {"labels": prefs.count, "epochs": m["reward/epochs"],
                    "train_acc": m["reward/train_acc"], "ce": m["reward/loss"],
                    "prior_loss": m["prior/loss"],
+                   # ‖∇ λ·L_prior‖ / ‖∇ CE‖ where the round's update starts
+                   "prior_grad_ratio": m["prior/loss/grad_ratio"],
                    # of the rule's own credit (uniform for pebble, which does not use it)
                    "target_out_of_range": unreachable_targets(params, prefs, credit,
                                                               cfg.reward)}

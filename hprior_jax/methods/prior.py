@@ -36,11 +36,13 @@ from hprior_jax.methods.pebble import Extension, Pebble, PebbleConfig, PebbleSta
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import pair_credit
-from hprior_jax.prior.diagnostics import unreachable_targets
+from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, prior_term, variant_alpha
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
 LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
+DIAGNOSTIC_SEGMENTS = 64  # replay segments the world-model diagnostics are measured on
+DIAGNOSTICS_STREAM = 0x6469  # folded off the world model's key: its training draws are unchanged
 
 
 @dataclass(frozen=True)
@@ -135,14 +137,34 @@ class WorldModelPrior(Extension):
                              lam=jnp.asarray(self.prior_cfg.lam, jnp.float32))
 
     def train_world_model(self, rs: RunState, *, pretrain: bool):
-        """Pre-training: observation and dynamics model; later: dynamics only (appendix C.3)."""
+        """Pre-training: observation and dynamics model; later: dynamics only (appendix C.3).
+        Metrics: the training losses and, after the update, `diagnose_world_model`'s."""
         p, ext = self.prior_cfg, rs.method.ext
+        key = jax.random.fold_in(rs.key, wm.RANDOM_STREAM)
         state, metrics = wm.train(
-            ext.wm, jax.random.fold_in(rs.key, wm.RANDOM_STREAM), rs.replay.obs, rs.replay.action,
+            ext.wm, key, rs.replay.obs, rs.replay.action,
             rs.replay.size, cfg=self.wm_cfg, episode_len=self.kit.env.episode_length,
             num_steps=p.wm_pretrain_steps if pretrain else p.wm_update_steps,
             observation_model=pretrain, dynamics_model=True)
+        metrics = {**metrics, **self.diagnose_world_model(
+            state.params, rs.replay, jax.random.fold_in(key, DIAGNOSTICS_STREAM))}
         return rs.replace(method=rs.method.replace(ext=ext.replace(wm=state))), metrics
+
+    def diagnose_world_model(self, params, buf, key) -> dict:
+        """prior.diagnostics on `DIAGNOSTIC_SEGMENTS` segments of the replay buffer (the data
+        it trains on, so in-sample; the reward lab measures them on held-out episodes):
+        next-state error against persistence and the mean state, and how much of α is
+        position. Metrics only: the true reward enters nothing that trains."""
+        k_rows, k_perm = jax.random.split(key)
+        t = self.wm_cfg.segment_len
+        idx = wm.segment_rows(k_rows, buf.size, episode_len=self.kit.env.episode_length,
+                              batch_size=DIAGNOSTIC_SEGMENTS, segment_len=t)
+        perm = jax.vmap(lambda k: jax.random.permutation(k, t))(
+            jax.random.split(k_perm, DIAGNOSTIC_SEGMENTS))
+        diag = world_model_diagnostics(params, buf.obs[idx], buf.action[idx],
+                                       buf.true_reward[idx], perm, self.wm_cfg,
+                                       query=self.prior_cfg.attention_query)
+        return {f"prior/{k}": v for k, v in diag.items()}
 
     def reward_terms(self, rs, ms: PebbleState):
         """α for every stored pair from the current world model, then the prior term."""

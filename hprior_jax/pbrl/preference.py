@@ -27,6 +27,9 @@ from hprior_jax.networks.reward_ensemble import (Params, RewardConfig, member_re
                                                  per_member_rewards)
 
 
+GRAD_RATIO_STREAM = 0x67726164  # folded off a round's key: its epochs draw what they drew
+
+
 @dataclass(frozen=True)
 class PreferenceConfig:
     batch_size: int = 128  # BPref `train_batch_size`, hard-coded
@@ -128,6 +131,46 @@ def _member_batch_loss(params, batch: PreferenceBatch, mask, reward_cfg, label_m
     return loss, (per_member, correct, n, values)
 
 
+def _gather(store: PreferenceStore, terms: tuple[RewardTerm, ...], idx: jax.Array):
+    """The stored pairs and the terms' rows at per-member indices idx[K, b]."""
+    batch = PreferenceBatch(obs1=store.obs1[idx], act1=store.act1[idx], obs2=store.obs2[idx],
+                            act2=store.act2[idx], labels=store.labels[idx])
+    return batch, tuple(jax.tree.map(lambda x: x[idx], term.data) for term in terms)
+
+
+def term_gradient_ratios(params: Params, store: PreferenceStore, key: jax.Array, *,
+                         reward_cfg: RewardConfig, cfg: PreferenceConfig,
+                         terms: tuple[RewardTerm, ...]) -> dict[str, jax.Array]:
+    """‖∇ weight·term‖ / ‖∇ CE‖ (global norms over the ensemble's parameters) on one minibatch
+    of stored pairs drawn as an epoch draws its first one: how hard each auxiliary term pulls
+    against the preference loss. Keyed "<term name>/grad_ratio"; 0 with an empty store."""
+    k, bs = reward_cfg.ensemble_size, cfg.batch_size
+    perm = member_permutations(key, store.count, store.capacity, k)
+    idx = jnp.pad(perm, ((0, 0), (0, max(bs - store.capacity, 0))))[:, :bs]
+    mask = jnp.arange(bs) < store.count
+    batch, rows = _gather(store, terms, idx)
+
+    def ce(p):
+        s1 = per_member_rewards(p, batch.obs1, batch.act1, reward_cfg)
+        s2 = per_member_rewards(p, batch.obs2, batch.act2, reward_cfg)
+        return bt_loss_from_returns(s1.sum(-1), s2.sum(-1), batch.labels, mask,
+                                    cfg.label_margin)[0]
+
+    def weighted(term, r):
+        def loss(p):
+            s1 = per_member_rewards(p, batch.obs1, batch.act1, reward_cfg)
+            s2 = per_member_rewards(p, batch.obs2, batch.act2, reward_cfg)
+            return term.weight * term.loss(s1, s2, r, mask, p)
+        return loss
+
+    ce_norm = optax.global_norm(jax.grad(ce)(params))
+    return {f"{t.name}/grad_ratio": jnp.where(
+                store.count > 0,
+                optax.global_norm(jax.grad(weighted(t, r))(params)) / jnp.maximum(ce_norm, 1e-12),
+                0.0)
+            for t, r in zip(terms, rows)}
+
+
 def member_permutations(key: jax.Array, count: jax.Array, capacity: int, ensemble_size: int) -> jax.Array:
     """[K, capacity] int32: row k starts with an independent random permutation of 0..count-1
     (BPref: `np.random.permutation(max_len)` per member); the tail is padding (indices >= count)."""
@@ -166,9 +209,7 @@ def train_epoch(params: Params, opt_state: Any, store: PreferenceStore, key: jax
         start = i * bs
         idx = jax.lax.dynamic_slice_in_dim(perm, start, bs, axis=1)  # [K, bs]
         mask = (start + jnp.arange(bs)) < store.count  # [bs]
-        batch = PreferenceBatch(obs1=store.obs1[idx], act1=store.act1[idx], obs2=store.obs2[idx],
-                                act2=store.act2[idx], labels=store.labels[idx])
-        rows = tuple(jax.tree.map(lambda x: x[idx], term.data) for term in terms)
+        batch, rows = _gather(store, terms, idx)
         grads, (per_member, c, n, values) = grad_fn(params, batch, mask, reward_cfg,
                                                     cfg.label_margin, terms, rows)
         updates, opt_state = tx.update(grads, opt_state, params)
@@ -194,8 +235,9 @@ def train_reward(params: Params, opt_state: Any, store: PreferenceStore, key: ja
 
     Returns (params, opt_state, metrics) with metrics "reward/epochs" (int32), "reward/train_acc"
     (mean over members, last epoch), "reward/train_acc_member" [K], "reward/loss" (last epoch's
-    CE), and every term's unweighted loss under its name (last epoch). With an empty store, no
-    epoch runs (epochs = 0, accuracy 0).
+    CE), every term's unweighted loss under its name (last epoch) and its gradient-norm ratio
+    to the CE before the first epoch ("<name>/grad_ratio", `term_gradient_ratios`). With an
+    empty store, no epoch runs (epochs = 0, accuracy 0).
     """
     k = reward_cfg.ensemble_size
 
@@ -210,11 +252,14 @@ def train_reward(params: Params, opt_state: Any, store: PreferenceStore, key: ja
                                            reward_cfg=reward_cfg, cfg=cfg, terms=terms)
         return epoch + 1, params, opt_state, key, m["accuracy"], m["loss"], m["terms"]
 
+    # how hard each term pulls against the CE where the round starts (the new labels' pull)
+    ratios = term_gradient_ratios(params, store, jax.random.fold_in(key, GRAD_RATIO_STREAM),
+                                  reward_cfg=reward_cfg, cfg=cfg, terms=terms)
     scalar = jnp.zeros((), jnp.float32)
     init = (jnp.zeros((), jnp.int32), params, opt_state, key, jnp.zeros((k,), jnp.float32),
             scalar, {t.name: scalar for t in terms})
     epochs, params, opt_state, _, acc, loss, term_values = jax.lax.while_loop(cond, body, init)
     metrics = {"reward/epochs": epochs, "reward/train_acc": acc.mean(),
                "reward/train_acc_member": acc, "reward/loss": loss,
-               **term_values}
+               **term_values, **ratios}
     return params, opt_state, metrics
