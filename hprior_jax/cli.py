@@ -304,6 +304,9 @@ def _grid(argv: list[str]) -> int:
     parser.add_argument("--contacts", default="floor", choices=("floor", "all"),
                         help="DM Control physics, as `hprior train --contacts`; grids run "
                              "before 2026-12-02 were run with `all`")
+    parser.add_argument("--hand", default="arm", choices=("arm", "free"),
+                        help="MetaWorld scene, as `hprior train --hand`; grids run before "
+                             "2026-12-03 were run with `free`")
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -313,7 +316,7 @@ def _grid(argv: list[str]) -> int:
 
     from hprior_jax.presets import EVAL_BUDGETS
 
-    overrides = dict(EVAL_BUDGETS[args.eval_budget], contacts=args.contacts)
+    overrides = dict(EVAL_BUDGETS[args.eval_budget], contacts=args.contacts, hand=args.hand)
     overrides.update({k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
                       if v is not None})
     enable_compilation_cache()

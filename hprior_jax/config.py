@@ -14,6 +14,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
+from hprior_jax import envs
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.methods import registry
 
@@ -51,6 +52,11 @@ class RunConfig:
     made no other contact in 20 episodes of random, bang-bang or trained actions; quadruped
     steps 2.9x faster, cheetah 2.2x), `all` also dm_control's self-collision pairs. Runs
     written before this option restore with `all`, the physics they were trained on."""
+    hand: Literal["arm", "free"] = "arm"
+    """MetaWorld tasks: `arm` keeps metaworld's Sawyer arm (its joints, inertias and damping
+    under the mocap weld; the scene that moves like metaworld's, see tasks/metaworld/sawyer.py),
+    `free` the free-floating hand of the first ports. Runs written before this option restore
+    with `free`, the scene they were trained on."""
     sac: SACConfig = field(default_factory=SACConfig)
 
     def __post_init__(self):
@@ -71,6 +77,8 @@ class RunConfig:
                              f"and --steps ({self.steps})")
         if self.contacts not in ("floor", "all"):
             raise ValueError(f"--contacts {self.contacts!r}: floor or all")
+        if self.hand not in ("arm", "free"):
+            raise ValueError(f"--hand {self.hand!r}: arm or free")
         if self.replay_capacity < 0:
             raise ValueError("--replay-capacity must be >= 0 (0 means --steps)")
         if self.sac.batch_size > self.steps:
@@ -88,7 +96,10 @@ class RunConfig:
     def from_dict(d: dict) -> "RunConfig":
         """The inverse of `to_json` (format 2; `hprior_jax.loop.run_dir` reads format 1)."""
         d = {k: v for k, v in d.items() if k != "format"}
-        d.setdefault("contacts", "all")  # written before the option: dm_control's contacts
+        # written before these options: the physics the run was trained on
+        domain = envs.task_info(d["task"]).domain if "task" in d else None
+        d.setdefault("contacts", "all" if domain == "dm_control" else "floor")
+        d.setdefault("hand", "free" if domain == "metaworld" else "arm")
         return _dataclass_from_dict(config_class(d.get("algo", registry.DEFAULT)), d)
 
 

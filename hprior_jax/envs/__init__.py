@@ -87,13 +87,21 @@ def make_env(task_name: str, num_envs: int = 1, **task_options) -> VecEnv:
 
 def task_options(cfg) -> dict:
     """The port options a run configuration asks for beyond the ports' defaults (so the
-    default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control."""
-    if cfg.contacts == "floor":
-        return {}
-    if task_info(cfg.task).domain != "dm_control":
-        raise ValueError(f"--contacts {cfg.contacts}: only the DM Control ports have "
-                         f"self-collision pairs to keep ({cfg.task} has explicit pairs)")
-    return {"contacts": cfg.contacts}
+    default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control,
+    `arm=False` (`hand="free"`) on MetaWorld."""
+    domain = task_info(cfg.task).domain
+    options = {}
+    if cfg.contacts != "floor":
+        if domain != "dm_control":
+            raise ValueError(f"--contacts {cfg.contacts}: only the DM Control ports have "
+                             f"self-collision pairs to keep ({cfg.task} has explicit pairs)")
+        options["contacts"] = cfg.contacts
+    if cfg.hand != "arm":
+        if domain != "metaworld":
+            raise ValueError(f"--hand {cfg.hand}: only the MetaWorld ports have a Sawyer hand")
+        # the free-hand ports' scene as it was: the wrist box on every task
+        options.update(arm=False, wrist="box")
+    return options
 
 
 def task_names() -> list[str]:

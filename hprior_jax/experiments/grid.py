@@ -30,11 +30,18 @@ class GridRun:
         return Path(self.cfg.out)
 
 
+PHYSICS_DOMAIN = {"contacts": "dm_control", "hand": "metaworld"}
+
+
 def run_config(root: Path, task: str, algo: str, seeds, budget: str,
                overrides: dict) -> RunConfig:
-    from hprior_jax import presets
+    from hprior_jax import envs, presets
 
     out = str(Path(root) / task / algo)
+    # a physics option applies to the tasks of its domain only (grids mix DMC and MetaWorld)
+    domain = envs.task_info(task).domain
+    overrides = {k: v for k, v in overrides.items()
+                 if PHYSICS_DOMAIN.get(k, domain) == domain}
     return presets.train_preset(task, algo, budget, seeds=tuple(seeds), out=out, **overrides)
 
 

@@ -10,28 +10,34 @@ mocap target runs on, so the hand trails it by ~0.22 m. Contacts here (13 pairs)
   * the wrist (its mesh's bounding box, see sawyer.py) x the button's rod, flange and cap,
     and x the box as one solid block (the wrist is wider than the hole): 4 pairs;
   * the cap x the box's front face (a plane at y = -0.09, paired with the cap only): 1 pair.
-Removed: the flange's resting contacts with the hole's edges (friction on the slide) and the
-arm (free hand, sawyer.py). Tried and not kept (same benchmark, 20 episodes): only wrist x cap
+Removed: the flange's contacts with the slabs around the hole (it enters them only in the
+last 1.6 cm of the stroke; as a capsule pair they moved the return by <1%, C MuJoCo) and the
+arm's geoms (sawyer.py). Tried and not kept (same benchmark, 20 episodes): only wrist x cap
 (10 pairs): the wrist slides past the cap and drags the button out (+0.35 m, success at step
 500 0%); without the claws x table pairs (9 pairs): return x1.24, button to -0.096.
 
-Speed (`python -m benchmarks.metaworld_throughput --tasks button_press`, batch 64, run
-back to back with the first port on the same machine): 358 env steps/s against 1188, x0.30:
-misses issue 18's "at least half" (the 3 box-box wrist pairs and 4 plane-box table pairs
-add ~34 contact slots to the first port's 16). The first port had only claws x cap: the gripper pushed the
-button to -0.358 and through the success zone (success at step 500: 0% against 100%).
+Speed (`python -m benchmarks.metaworld_throughput --tasks button_press`, batch 64): 385 env
+steps/s with the arm (460 with the free hand in the same run; the first port, claws x cap
+only, 1188 on 2026-12-01): misses issue 18's "at least half" (the 3 box-box wrist pairs and
+4 plane-box table pairs add ~34 contact slots to the first port's 16). The first port
+pushed the button to -0.358 and through the success zone (success at step 500: 0% against
+100%).
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks button_press` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port): success at step 500 100% vs 100%,
-button down to -0.087 vs -0.084, hand-mocap 0.234 vs 0.223 m (x1.05). Target missed: the
-return, 592 vs 445 (x1.33); the port presses earlier (first success at step 50 vs 63) and
-the reward pays up to 10 per step once the fingers are within 5 cm of the pressed button.
-The wrist's shape is part of it: with metaworld's arm, C MuJoCo, one episode from
-metaworld's reset state, the return is 461 with metaworld's wrist mesh (metaworld: 461), 532
-with a 24-point hull and 564 with the box; on the free hand a 12- or 24-point hull gives
-x1.23 (10 episodes, C MuJoCo), not enough to keep its cost. Before the hand kept metaworld's
-constraint weights (sawyer.py): return x1.02 but the button went to -0.101 and hand-mocap
-x0.63.
+scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): success at
+step 500 100% vs 100%, button down to -0.087 vs -0.084, hand-mocap 0.237 vs 0.223 m (x1.06).
+Target missed: the return, 579 vs 445 (x1.30; the free hand x1.33). Why (C MuJoCo, the
+same scene, 2 episodes in lockstep from metaworld's state): the observations stay within
+1e-6 until step 40, then in the press metaworld's hand goes about 1 cm deeper into the box's
+recess and its fingers close while they rest on the table and the cap (gripper opening 0.79
+at step 70 -> 0.38 at step 500; here 0.82 -> 0.74); the reward's 2 * hamacher(opening, near) term then pays more
+here at every step (1.25 vs 0.69 at step 500). The wrist's shape decides it: with
+metaworld's own wrist mesh and the box's 4 slabs as separate pairs (instead of one block)
+the return is x0.99 (20 episodes, C MuJoCo), with 32- or 96-point hulls of that mesh x1.20
+and x1.17, with the box x1.23; under MJX the full mesh runs at 14 env steps/s at batch 64
+(SAT over its 883-vertex hull), against 385 with the box, so the box stays.
+Before the free hand kept metaworld's constraint weights (sawyer.py): return x1.02 but the
+button went to -0.101 and hand-mocap x0.63.
 """
 from __future__ import annotations
 

@@ -5,14 +5,15 @@ from the side and pull it round; the door stops when its panel meets the safe's 
 at -1.82 rad (joint range [-2, 0]). Contacts (13 pairs): the 4 gripper geoms x the 3 handle
 cylinders of `door_link` (rod and the two grip cylinders, as capsules: MJX has no
 cylinder-box collision), and the door panel x the safe's side wall (the door stop).
-Removed: the rest of the safe, the wrist (6 contact steps in 3 episodes), the arm (free
-hand, sawyer.py). The observed handle pose is that of metaworld's visual mesh geom
+Removed: the rest of the safe, the wrist (6 contact steps in 3 episodes), the arm's geoms
+(sawyer.py). The observed handle pose is that of metaworld's visual mesh geom
 "handle", recomputed from `door_link`'s pose (the mesh itself is deleted).
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks door_open` (metaworld's scripted
-policy, 20 episodes a side, 500 steps, MJX port): all four targets met. Return 4303 vs 4485
-(x0.96), success at step 500 95% vs 100%, door down to -1.80 vs -1.82 rad (the panel-wall
-stop holds), hand-mocap 0.197 vs 0.189 m (x1.04). Before the hand kept metaworld's
+policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four targets met.
+Return 4198 vs 4485 (x0.94), success at step 500 90% vs 100%, door down to -1.80 vs -1.82 rad
+(the panel-wall stop holds), hand-mocap 0.213 vs 0.189 m (x1.13); the free hand: x0.96, 95%,
+x1.04. Before the free hand kept metaworld's
 constraint weights (sawyer.py) the free hand's 6x stiffer weld pushed the door through that
 stop to -2.16 rad and past the success radius (success at step 500 0%); the first port,
 without the stop, reached -2.45.

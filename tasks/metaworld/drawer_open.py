@@ -5,12 +5,13 @@ metaworld's own scripted episodes (contact census, C MuJoCo) the claws and pads 
 middle handle capsule (and the wrist, 24 steps in 3 episodes); the drawer box, case, table
 and walls are never touched, so their contacts are dropped. The drawer stops on its joint
 limit alone, which the push overpowers in metaworld too (-0.203; range [-0.16, 0]).
-The arm is replaced by the free hand (sawyer.py).
+The arm keeps its joints and inertias, not its geoms (sawyer.py).
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks drawer_open` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port): all four targets met. Return 4056
-vs 4049 (x1.00), success at step 500 100% vs 100%, drawer out to -0.2026 vs -0.2026, hand-mocap
-0.085 vs 0.086 m (x0.98). Before the hand kept metaworld's constraint weights (sawyer.py)
+scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four
+targets met. Return 4031 vs 4049 (x1.00), success at step 500 100% vs 100%, drawer out to
+-0.2026 vs -0.2026, hand-mocap 0.086 vs 0.086 m (x1.00); the free hand met them too (x1.00,
+x0.98). Before the free hand kept metaworld's constraint weights (sawyer.py)
 the free hand's 6x stiffer weld dragged the drawer to -0.262, past the success radius
 (success at step 500 0%, return x0.80).
 """

@@ -2,38 +2,37 @@
 39-D observation, and the reset/step skeleton. Checked against metaworld 3.0.0.
 
 Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`):
-  * The 7-DOF arm, pedestal and head are deleted (`arm=False`, the default): we re-root the
-    `hand` subtree on a free joint and keep metaworld's mocap weld (solref 0.02 1, anchor 0,
-    identity relpose, torquescale 5). The free hand gets mass 1 kg / inertia 2e-3 and
-    gravity compensation on the whole gripper, so at rest it sits on the mocap target
-    (metaworld's hand rests within 5 mm of it, held up by the arm).
+  * metaworld's 7-DOF arm is kept (`arm=True`, the default since 2026-12-02): its joints
+    with damping, armature and limits, its link inertias and metaworld's mocap weld exactly
+    as metaworld compiles them (joint-less bodies that nothing reads are fused into their
+    parents, world-fixed ones deleted); only its geoms go. From metaworld's state, driven
+    by metaworld's recorded mocap path and gripper control (C MuJoCo), this scene follows
+    metaworld's hand to within 1e-7 m until the first contact; with metaworld's wrist mesh,
+    4 of 6 door_unlock episodes stay identical to the end. With the arm, sweep_into,
+    window_open, door_open and drawer_open meet issue 18's closed-loop targets (table in
+    benchmarks/README.md). Cost under MJX, batch 64, this 2-core CPU, same run against the
+    free hand: 0.73-0.89x its env steps/s (drawer 727 vs 813, button 385 vs 460, door_open
+    613 vs 837, window 513 vs 701, door_unlock 609 vs 797, sweep 126 vs 171) and 47-62 s
+    to compile the step instead of 32-44 s. (That the arm "did not compile in 8 minutes"
+    at batch 64 was XLA constant-folding the reset's kinematics of the constant settled arm
+    state; `reset` now makes that state depend on the key.)
+  * `arm=False` (`hand="free"` in a run config) is the first ports' scene: the arm, pedestal
+    and head are deleted, the `hand` subtree re-rooted on a free joint under metaworld's
+    mocap weld (solref 0.02 1, anchor 0, identity relpose, torquescale 5), with mass 1 kg /
+    inertia 2e-3 and gravity compensation on the whole gripper, so at rest it sits on the
+    mocap target (metaworld's hand rests within 5 mm of it, held up by the arm).
   * Every kept body and joint keeps metaworld's compiled *inverse weights*
     (`body_invweight0`, `dof_invweight0`; `_copy_invweights`). MuJoCo and MJX scale each soft
     constraint's force by these compile-time numbers, so they decide how hard the mocap weld
     pulls the hand and how hard the gripper presses: the free hand's own weight (0.97 against
     metaworld's 6.1) made the weld 6x stiffer, and the hand overpowered the drawer's and
     the door's soft stops (drawer -0.262 vs metaworld's -0.203, door -2.16 vs -1.82 rad).
-    The wrist collider hangs on a massless child body named `right_hand`, rigid on the hand,
-    so its contacts keep the weight of the arm link that carries the wrist in metaworld
-    (0.67). With these weights drawer_open, door_open and window_open meet all four
-    targets below. What the weights do not give back is the arm's inertia and joint
-    damping: over the first 60 steps (reaching, no contact) metaworld's hand trails the
-    mocap by 17-60% more than the free hand's (6 tasks, 4 episodes each, metaworld's mocap
-    path replayed on this scene in C MuJoCo: `python -m benchmarks.metaworld_mocap_replay`).
-    A weld damping ratio of 1.2 instead of 1, with the hand's weight scaled by 1/1.2^2 to
-    keep the static pull, matched that lag within 12% on 4 of the tasks but cost
-    window_open's last-step success (60% vs 100%, 10 episodes, C MuJoCo; a one-off script,
-    not kept), so metaworld's weld is kept as it is.
-    `arm=True` keeps metaworld's arm instead: its joints with damping, armature and limits,
-    link inertias and the weld exactly as metaworld compiles them (joint-less bodies that
-    nothing reads are fused into their parents, world-fixed ones deleted). In C MuJoCo that
-    scene reproduces metaworld closely (button_press: hand-mocap 0.24 vs 0.21 m, button
-    -0.083 vs -0.084; drawer_open all four targets met; with metaworld's wrist mesh in
-    place of the box, window_open's and button_press's scripted returns equal metaworld's
-    to 4 digits). Under MJX on this 2-core CPU it is not usable yet: `jit(mjx.kinematics)`
-    2.2 ms, one B=1 step 6.3 ms (38 s to compile), and compiling the vmapped batch-64 env
-    step did not finish in 8 minutes (2026-12-01, with another job on the second core; the
-    free-hand button_press compiles in 28-64 s). So the free hand stays the default.
+    Without the arm the wrist collider hangs on a massless child body named `right_hand`,
+    rigid on the hand, so its contacts keep the weight of the arm link that carries the
+    wrist in metaworld (0.67). With these weights the free hand meets the targets on
+    drawer_open, door_open and window_open; what they do not give back is the arm's
+    inertia and joint damping (sweep_into: metaworld's arm-held hand overshoots the puck in
+    65% of its scripted episodes, the free hand never does).
   * Visual-only geoms (contype = conaffinity = 0, all meshes), meshes, textures and materials
     are deleted (with the arm, so are collision geoms that no pair below uses); every body
     keeps its compiled mass and inertia (set explicitly), so the dynamics of what remains are
@@ -47,13 +46,15 @@ Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`):
     wall), chosen from a contact census of metaworld's own scripted episodes. Pair
     parameters are computed from the two geoms as MuJoCo mixes them for dynamic contacts.
     MJX tests every candidate pair every step; this is the main speed lever.
-  * The wrist mesh (6693 vertices) becomes a box: its vertices' bounding box in the hand's
-    axes (`wrist="box"`; `wrist=k` gives a convex mesh on k of its hull vertices). The shape
-    matters: with the arm, C MuJoCo, one button_press episode from metaworld's reset state,
-    the scripted return is 461 with metaworld's mesh (metaworld: 461), 532 with a 24-point
-    hull and 564 with the box (the fingers are squeezed less by the cap). MJX has no
-    cylinder-box collision: paired cylinders that meet a box become capsules (long ones) or
-    boxes (short, wide ones).
+  * The wrist mesh (6693 vertices, a convex hull of 883) becomes a box: its vertices'
+    bounding box in the hand's axes (`wrist="box"`, the default; `wrist=k` gives a convex
+    mesh on k of its hull vertices, which door_unlock uses). The shape matters where the
+    wrist does the work: button_press (C MuJoCo, with the arm, 20 episodes; the wrist paired
+    with the 4 slabs around the button's hole): return x0.99 of metaworld's with metaworld's
+    own mesh, x1.17 with a 96-point hull, x1.20 with 32 points, x1.23 with the box; but
+    under MJX the full mesh runs at 14 env steps/s at batch 64 (SAT over its hull), against
+    385 with the box. MJX has no cylinder-box collision: paired cylinders that meet a box
+    become capsules (long ones) or boxes (short, wide ones).
   * metaworld places the task object at reset by editing `model.body_pos` of one body
     (drawer, door, box, window). We do the same per environment: the placement lives in
     `info["placement"]` and `model_for(info)` swaps it into `body_pos` inside the jitted
@@ -196,7 +197,7 @@ def _wrist_hull_points(model, data, g, body, k):
     return hull[chosen]
 
 
-def build_scene(scene: SceneSpec, arm: bool = False, wrist: str | int = "box",
+def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
                 metaworld_invweights: bool = True) -> tuple[mujoco.MjModel, dict]:
     """The simplified MuJoCo model of a metaworld scene (see module docstring).
 
@@ -493,9 +494,10 @@ class SawyerTask(Task):
     obj_high: tuple = ()
     goal_low: tuple | None = None  # goal_space; None -> hand bounds (metaworld default)
     goal_high: tuple | None = None
+    wrist: str | int = "box"  # the task's wrist collider (build_scene); a task may pick a hull
 
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
-                 ls_iterations: int = 10, arm: bool = False, wrist: str | int = "box",
+                 ls_iterations: int = 10, arm: bool = True, wrist: str | int | None = None,
                  metaworld_invweights: bool = True):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
@@ -510,8 +512,9 @@ class SawyerTask(Task):
         success and drift (benchmarks/metaworld_parity.py). Pass 50, 50 for metaworld's."""
         self.partially_observable = partially_observable
         self.arm = arm
+        self.wrist = self.wrist if wrist is None else wrist
         self.mj_model, self.scene_info = build_scene(
-            self.scene, arm=arm, wrist=wrist, metaworld_invweights=metaworld_invweights)
+            self.scene, arm=arm, wrist=self.wrist, metaworld_invweights=metaworld_invweights)
         self.mj_model.opt.iterations = solver_iterations
         self.mj_model.opt.ls_iterations = ls_iterations
         self.model = put_model(self.mj_model)
@@ -646,6 +649,13 @@ class SawyerTask(Task):
         info = {"init_tcp": jnp.asarray(self._settled["init_tcp"], jnp.float32)}
         data, placed = self._place(key, data)
         info.update(placed)
+        if self.arm:
+            # qpos made to depend on the key (+ 0 · u, exact): under vmap it is then batched
+            # like the placed model. With the unbatched constant qpos, XLA's constant folding
+            # of the arm scene's reset ran over 5 minutes at batch 64 (8 s at batch 8; 10 s
+            # this way)
+            data = data.replace(qpos=data.qpos + 0.0 * jax.random.uniform(
+                jax.random.fold_in(key, 0x71706F73), data.qpos.shape))
         # positions only: obs and episode constants read nothing else, and mjx.step recomputes
         # every derived quantity from qpos/qvel (cheaper to compile and to auto-reset)
         data = mjx.kinematics(self.model_for(info), data)
@@ -719,7 +729,8 @@ class SawyerTask(Task):
         """Episode constants of a metaworld env (after its reset) in this port's `info` form."""
         info = {"init_tcp": np.asarray(env.init_tcp), **self._task_info_from_metaworld(env)}
         if self._placed_body is not None:
-            info["placement"] = np.asarray(env.model.body(self.scene.placed_body).pos)
+            # a copy: `body(...).pos` is a view of the model, which the next reset rewrites
+            info["placement"] = np.array(env.model.body(self.scene.placed_body).pos)
         return info
 
     def _task_info_from_metaworld(self, env) -> dict:

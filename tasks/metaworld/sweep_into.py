@@ -13,8 +13,8 @@ scripted-policy episodes: contact census of 4 goal-observable scripted episodes 
   * the puck x the big table block under the slabs (1 pair): it is the floor of the hole,
     where the puck comes to rest (z = 0.02) after falling in.
 The lower inner table block (top at z = -0.053) is never reached (the big block covers it)
-and the floor is 0.9 m down: both dropped. The wrist geom of the deleted arm (`right_hand`,
-which collides in metaworld) is gone with the arm; it never touched anything in the census.
+and the floor is 0.9 m down: both dropped. The wrist geom (`right_hand`'s mesh, which
+collides in metaworld) never touched anything in the census: it has no pair here.
 
 Reset: metaworld's `reset_model` draws the puck's x, y (rejecting draws within 0.15 of the
 goal in x-y; the goal half of the random vector is unused, the goal is fixed) and moves the
@@ -23,24 +23,17 @@ the table top, the hand reset pushes it up to z ~ 0.07), keeping that settled or
 velocities zero. We take that settled height/orientation from our own hand-settling run
 (z = 0.0699681, identical to metaworld's to 7 digits).
 
-Known difference, not fixed (benchmarks/metaworld_parity.py, seed 0, open-loop replay of the
-scripted actions): the arm-less hand leads metaworld's by ~1 cm, and over the hole it sinks
-to ~0.054 (the mocap floor is z = 0.05) where metaworld's stays at ~0.08, so the puck drops
-into the hole some steps earlier; max hand/puck error 0.10 / 0.11 m over 500 steps.
-
 Measured closed loop, `python -m benchmarks.metaworld_dynamics --tasks sweep_into`
-(metaworld's scripted policy, 20 episodes a side, 500 steps, MJX port): the port is far
-*easier* than metaworld. Return 4590 vs 2160 (x2.12), success at step 500 100% vs 35%,
-hand-mocap distance 0.007 vs 0.072 m (x0.10): three targets missed (the puck has no joint
-range). Why metaworld's own policy fails (6 of its episodes traced, C MuJoCo): in 3 the
-puck overshoots the goal into the far corner of the hole (-0.06, 0.90; the target radius is
-5 cm) and the hand jams against the hole's far wall 11 cm short of the mocap; in 2 the
-fingers press the puck into the table top (z 0.036 instead of 0.07) and the policy drags it
-back to y 0.39; 1 succeeds. On the port the hand follows the mocap into the hole and the
-puck ends on the goal every time. Metaworld's constraint weights (sawyer.py) did not change
-this (C MuJoCo, 10 episodes: 100% vs 30%); the arm's inertia and damping, which the free
-hand does not have, are the remaining suspect (its hand trails the mocap by 0.13 m in y
-while sweeping).
+(metaworld's scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm):
+all four targets met. Return 2083 vs 2160 (x0.96), success at step 500 30% vs 35%, first
+success at step 55 vs 56, hand-mocap 0.071 vs 0.072 m (x1.00); the puck has no joint range.
+metaworld's own policy fails often (6 of its episodes traced, C MuJoCo): in 3 the puck
+overshoots the goal into the far corner of the hole (-0.06, 0.90; the target radius is 5 cm)
+and the hand jams against the hole's far wall 11 cm short of the mocap; in 2 the fingers
+press the puck into the table top and the policy drags it back; 1 succeeds. It takes the
+arm's inertia and joint damping to do the same: the free hand (`arm=False`) followed the
+mocap into the hole and put the puck on the goal every time (return x2.12, success 100%,
+hand-mocap x0.10), with or without metaworld's constraint weights.
 """
 from __future__ import annotations
 

@@ -6,15 +6,15 @@ stops when its stile meets the frame's side post (slide 0.203; joint range [0, 0
 Contacts (16 pairs): the 4 gripper geoms x the 3 handle capsules of the sliding pane
 `windowb_a` (12), the wrist (the gripper base's bounding box, see sawyer.py) x the same 3
 capsules, and the pane's stile x the frame post (the end stop). Removed: glass, the fixed
-pane and the rest of the frame (off the solution's path), the arm (free hand, sawyer.py).
+pane and the rest of the frame (off the solution's path), the arm's geoms (sawyer.py).
 The first port (claws x handle only) let the hand ride over the handle after the push and
 drag the pane back: success at step 500 25% against metaworld's 100%.
 
 Measured, `python -m benchmarks.metaworld_dynamics --tasks window_open` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port): all four targets met. Return 2229
-vs 2219 (x1.00), success at step 500 100% vs 100%, slide max 0.2029 vs 0.2033, hand-mocap
-0.159 vs 0.159 m (x1.00; 0.032, x0.20, before the hand kept metaworld's constraint weights,
-sawyer.py: the stiffer weld was not held back by the pane at its stop).
+scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four
+targets met. Return 2206 vs 2219 (x0.99), success at step 500 100% vs 100%, slide max 0.2034
+vs 0.2033, hand-mocap 0.161 vs 0.159 m (x1.01). The free hand met them too (x1.00; before it
+kept metaworld's constraint weights, sawyer.py, its hand-mocap was x0.20).
 
 Reset quirk kept on purpose: metaworld computes `window_handle_pos_init` (the margin of the
 reach reward) right after moving the window *without* a forward pass, so it reads the

@@ -102,3 +102,17 @@ def test_runs_before_the_contacts_option_restore_with_all_contacts():
     assert task_options(RunConfig(task="drawer_open", algo="sac")) == {}
     with pytest.raises(ValueError, match="only the DM Control ports"):
         task_options(RunConfig(task="drawer_open", algo="sac", contacts="all"))
+
+
+def test_runs_before_the_hand_option_restore_with_the_free_hand():
+    """A MetaWorld run written before `hand` restores with the free hand (and the contacts
+    default: MetaWorld ports have only explicit pairs); a DM Control one is unaffected."""
+    d = json.loads(RunConfig(task="drawer_open", algo="sac").to_json())
+    old = {k: v for k, v in d.items() if k not in ("hand", "contacts")}
+    assert (RunConfig.from_dict(old).hand, RunConfig.from_dict(old).contacts) == ("free", "floor")
+    assert task_options(RunConfig.from_dict(old)) == {"arm": False, "wrist": "box"}
+    assert RunConfig.from_dict(d).hand == "arm"
+    dmc = json.loads(RunConfig(task="cheetah_run", algo="sac").to_json())
+    assert RunConfig.from_dict({k: v for k, v in dmc.items() if k != "hand"}).hand == "arm"
+    with pytest.raises(ValueError, match="only the MetaWorld ports"):
+        task_options(RunConfig(task="cheetah_run", algo="sac", hand="free"))
