@@ -306,7 +306,7 @@ def _grid(argv: list[str]) -> int:
                              "before 2026-12-02 were run with `all`")
     parser.add_argument("--hand", default="arm", choices=("arm", "free"),
                         help="MetaWorld scene, as `hprior train --hand`; grids run before "
-                             "2026-12-03 were run with `free`")
+                             "this option were run with `free`")
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)

@@ -13,10 +13,9 @@ Measured, `python -m benchmarks.metaworld_dynamics --tasks door_open` (metaworld
 policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four targets met.
 Return 4198 vs 4485 (x0.94), success at step 500 90% vs 100%, door down to -1.80 vs -1.82 rad
 (the panel-wall stop holds), hand-mocap 0.213 vs 0.189 m (x1.13); the free hand: x0.96, 95%,
-x1.04. Before the free hand kept metaworld's
-constraint weights (sawyer.py) the free hand's 6x stiffer weld pushed the door through that
-stop to -2.16 rad and past the success radius (success at step 500 0%); the first port,
-without the stop, reached -2.45.
+x1.04. Before the free hand kept metaworld's constraint weights (sawyer.py) its 6x stiffer
+weld pushed the door through that stop to -2.16 rad and past the success radius (success at
+step 500 0%); the first port, without the stop, reached -2.45.
 """
 from __future__ import annotations
 

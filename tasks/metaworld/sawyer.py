@@ -12,7 +12,7 @@ Scene (built at run time from the installed metaworld XML with `mujoco.MjSpec`):
     window_open, door_open and drawer_open meet issue 18's closed-loop targets (table in
     benchmarks/README.md). Cost under MJX, batch 64, this 2-core CPU, same run against the
     free hand: 0.73-0.89x its env steps/s (drawer 727 vs 813, button 385 vs 460, door_open
-    613 vs 837, window 513 vs 701, door_unlock 609 vs 797, sweep 126 vs 171) and 47-62 s
+    613 vs 837, window 513 vs 701, door_unlock 609 vs 797, sweep 126 vs 171) and 47-66 s
     to compile the step instead of 32-44 s. (That the arm "did not compile in 8 minutes"
     at batch 64 was XLA constant-folding the reset's kinematics of the constant settled arm
     state; `reset` now makes that state depend on the key.)
