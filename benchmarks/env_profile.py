@@ -11,8 +11,8 @@ are present) and timed on that batch (best of `--repeats`, after a warm-up call)
 substep is timed the same way, so `sum_over_whole` says how much the cut itself costs:
 each stage alone also reads and writes the whole batched `Data` (about 1 ms at batch 128
 on 2 cores), so a stage's time is an upper bound, and the ranking matters more than the
-sum. Also printed: the contact and constraint-row counts MJX allocates and how many contacts are active in the sample; and, as
-the reference in the same run, the substep and the solve traced with MJX's own line-search
+sum. Also printed: the contact and constraint-row counts MJX allocates and how many
+contacts are active in the sample; and, as the reference in the same run, the substep and the solve traced with MJX's own line-search
 loop (`tasks.physics.linesearch_loop("scan")`). Writes benchmarks/results/env_profile.csv.
 
     python -m benchmarks.env_profile --census [--episodes 20]

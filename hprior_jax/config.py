@@ -96,10 +96,10 @@ class RunConfig:
     def from_dict(d: dict) -> "RunConfig":
         """The inverse of `to_json` (format 2; `hprior_jax.loop.run_dir` reads format 1)."""
         d = {k: v for k, v in d.items() if k != "format"}
-        # written before these options: the physics the run was trained on
+        # written before a physics option existed: the physics the run was trained on
         domain = envs.task_info(d["task"]).domain if "task" in d else None
-        d.setdefault("contacts", "all" if domain == "dm_control" else "floor")
-        d.setdefault("hand", "free" if domain == "metaworld" else "arm")
+        for name, option in envs.PHYSICS_OPTIONS.items():
+            d.setdefault(name, option.before if domain == option.domain else option.default)
         return _dataclass_from_dict(config_class(d.get("algo", registry.DEFAULT)), d)
 
 

@@ -9,6 +9,9 @@ step.
 """
 from __future__ import annotations
 
+import dataclasses
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -85,22 +88,42 @@ def make_env(task_name: str, num_envs: int = 1, **task_options) -> VecEnv:
     return VecEnv(tasks.make(task_name, **task_options), num_envs)
 
 
+@dataclasses.dataclass(frozen=True)
+class PhysicsOption:
+    """A run-config field that picks a port's physics, meaningful in one domain only."""
+
+    domain: str
+    default: str  # the ports' default build (what `tasks.make(name)` caches)
+    before: str  # what runs written before the option existed were trained on
+    port_options: Callable[[str], dict]  # a non-default value -> the port's keyword options
+    refusal: str  # why another domain refuses a non-default value ({name}, {value}, {task})
+
+
+PHYSICS_OPTIONS = {
+    "contacts": PhysicsOption(
+        "dm_control", "floor", "all", lambda value: {"contacts": value},
+        "--{name} {value}: only the DM Control ports have self-collision pairs to keep "
+        "({task} has explicit pairs)"),
+    # `free`: the free-hand ports' scene as it was, with the wrist box on every task
+    "hand": PhysicsOption(
+        "metaworld", "arm", "free", lambda value: {"arm": False, "wrist": "box"},
+        "--{name} {value}: only the MetaWorld ports have a Sawyer hand"),
+}
+
+
 def task_options(cfg) -> dict:
     """The port options a run configuration asks for beyond the ports' defaults (so the
     default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control,
     `arm=False` (`hand="free"`) on MetaWorld."""
     domain = task_info(cfg.task).domain
     options = {}
-    if cfg.contacts != "floor":
-        if domain != "dm_control":
-            raise ValueError(f"--contacts {cfg.contacts}: only the DM Control ports have "
-                             f"self-collision pairs to keep ({cfg.task} has explicit pairs)")
-        options["contacts"] = cfg.contacts
-    if cfg.hand != "arm":
-        if domain != "metaworld":
-            raise ValueError(f"--hand {cfg.hand}: only the MetaWorld ports have a Sawyer hand")
-        # the free-hand ports' scene as it was: the wrist box on every task
-        options.update(arm=False, wrist="box")
+    for name, option in PHYSICS_OPTIONS.items():
+        value = getattr(cfg, name)
+        if value == option.default:
+            continue
+        if domain != option.domain:
+            raise ValueError(option.refusal.format(name=name, value=value, task=cfg.task))
+        options.update(option.port_options(value))
     return options
 
 

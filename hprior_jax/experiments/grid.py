@@ -30,9 +30,6 @@ class GridRun:
         return Path(self.cfg.out)
 
 
-PHYSICS_DOMAIN = {"contacts": "dm_control", "hand": "metaworld"}
-
-
 def run_config(root: Path, task: str, algo: str, seeds, budget: str,
                overrides: dict) -> RunConfig:
     from hprior_jax import envs, presets
@@ -41,7 +38,7 @@ def run_config(root: Path, task: str, algo: str, seeds, budget: str,
     # a physics option applies to the tasks of its domain only (grids mix DMC and MetaWorld)
     domain = envs.task_info(task).domain
     overrides = {k: v for k, v in overrides.items()
-                 if PHYSICS_DOMAIN.get(k, domain) == domain}
+                 if k not in envs.PHYSICS_OPTIONS or envs.PHYSICS_OPTIONS[k].domain == domain}
     return presets.train_preset(task, algo, budget, seeds=tuple(seeds), out=out, **overrides)
 
 

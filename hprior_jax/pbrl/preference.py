@@ -150,11 +150,8 @@ def term_gradient_ratios(params: Params, store: PreferenceStore, key: jax.Array,
     mask = jnp.arange(bs) < store.count
     batch, rows = _gather(store, terms, idx)
 
-    def ce(p):
-        s1 = per_member_rewards(p, batch.obs1, batch.act1, reward_cfg)
-        s2 = per_member_rewards(p, batch.obs2, batch.act2, reward_cfg)
-        return bt_loss_from_returns(s1.sum(-1), s2.sum(-1), batch.labels, mask,
-                                    cfg.label_margin)[0]
+    def ce(p):  # the update's loss without terms
+        return _member_batch_loss(p, batch, mask, reward_cfg, cfg.label_margin)[0]
 
     def weighted(term, r):
         def loss(p):
