@@ -46,13 +46,17 @@ def _train(argv: list[str]) -> int:
     for name in ("--task", "--algo", "--preset", "--resume", "--teacher", "--eval-budget"):
         pre.add_argument(name, default=None)
     pre.add_argument("--no-progress", action="store_true")
+    pre.add_argument("--devices", type=int, default=None)
     known, rest = pre.parse_known_args(argv)
     help_asked = "-h" in rest or "--help" in rest
 
     from hprior_jax import presets, provenance
-    from hprior_jax.loop import host, run_dir as run_dirs
+    from hprior_jax.loop import devices, host, run_dir as run_dirs
     from hprior_jax.loop.engine import Engine
     from hprior_jax.setup_jax import enable_compilation_cache
+
+    # before anything touches a device: with several processes the mesh spans them all
+    several = not help_asked and devices.initialize_distributed()
 
     if known.resume and not help_asked:
         # the flags over the run's own config: resume_config refuses what may not change
@@ -66,7 +70,7 @@ def _train(argv: list[str]) -> int:
         requested = _parse_config(default, _tyro_args(argv))
         cfg, saved_capacity = run_dirs.resume_config(run_dir, requested)
         enable_compilation_cache()
-        engine = Engine(cfg)
+        engine = Engine(cfg, known.devices)
     else:
         task, algo = known.task or "cheetah_run", known.algo or registry.DEFAULT
         default = presets.train_preset(task, algo, known.preset or DEFAULT_PRESET)
@@ -76,11 +80,19 @@ def _train(argv: list[str]) -> int:
             default = presets.with_eval_budget(default, known.eval_budget)
         cfg = _parse_config(default, rest if help_asked else _tyro_args(argv),
                             description=_train_description(algo))
+        if several and not cfg.out:
+            raise devices.DeviceCountError("a run of several processes needs --out: every "
+                                           "process must name the same run directory")
         cfg = dataclasses.replace(cfg, out=str(run_dirs.run_dir_path(cfg)))
-        run_dirs.check_out_dir(Path(cfg.out))
+        if devices.is_primary():
+            run_dirs.check_out_dir(Path(cfg.out))
         enable_compilation_cache()
-        engine = Engine(cfg)  # every configuration check runs before anything is written
-        run_dir = run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
+        # every configuration check runs before anything is written
+        engine = Engine(cfg, known.devices)
+        if devices.is_primary():
+            run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
+        devices.barrier("run directory")
+        run_dir = Path(cfg.out)
         saved_capacity = None
     print(f"run directory: {run_dir}", flush=True)
     try:
@@ -124,14 +136,16 @@ def _train_description(algo: str) -> str:
             "(cpu: 5 evaluation episodes every 10k steps; see README); --no-progress (no progress "
             "bar); --resume DIR continues an interrupted run, where only --steps, --eval-every, "
             "--checkpoint-every and --num-eval-episodes may change. Ctrl-C once finishes the "
-            "chunk in flight and saves a checkpoint; twice stops at once.")
+            "chunk in flight and saves a checkpoint; twice stops at once. --devices N splits "
+            "the seeds over N devices (default: as many as divide the seeds evenly; a run may "
+            "resume on another count); several hosts: README, 'Many devices and hosts'.")
 
 
 def _tyro_args(argv: list[str]) -> list[str]:
     """argv less the options the pre-parser owns (tyro knows --task/--algo/--preset as
     config fields, but not these)."""
     out = [a for a in argv if a != "--no-progress"]
-    for name in ("--teacher", "--resume", "--eval-budget"):
+    for name in ("--teacher", "--resume", "--eval-budget", "--devices"):
         out = _drop_option(out, name)
     return out
 

@@ -1,10 +1,11 @@
 """The chunk engine: env, SAC, the method's hooks, compiled `jit(vmap(chunk))` programs.
 
-Every leaf of `RunState` has a leading seed axis. The schedule (the method's phases and
-events) is decided on the host from the global step, which is the same for every seed; a
-chunk is a `lax.scan` over env steps compiled once per length as
-`jit(vmap(chunk, in_axes=(0, None)), donate_argnums=0)`. The global step enters unbatched,
-so per-step decisions derived from it (target-network EMA, episode ends, the replay ring
+Every leaf of `RunState` has a leading seed axis, split over the devices of a one-axis mesh
+(`hprior_jax.loop.devices`). The schedule (the method's phases and events) is decided on the
+host from the global step, which is the same for every seed; a chunk is a `lax.scan` over
+env steps compiled once per length as `vmap(chunk, in_axes=(0, None))` on every device's
+seeds (`devices.over_seeds`, donating the state). The global step enters unbatched, so
+per-step decisions derived from it (target-network EMA, episode ends, the replay ring
 position) stay scalar. The engine holds no mutable run state and names no method.
 """
 from __future__ import annotations
@@ -20,13 +21,17 @@ from hprior_jax.agents.sac import SAC
 from hprior_jax.buffers import replay
 from hprior_jax.envs import make_env, task_options
 from hprior_jax.evaluate import evaluate_policy
+from hprior_jax.loop import devices as seed_devices
 from hprior_jax.loop.state import RunState
 from hprior_jax.methods import registry
 
 
 class Engine:
-    def __init__(self, cfg):
+    def __init__(self, cfg, devices: int | None = None):
+        """`devices`: how many devices the seeds are split over (default: as many as divide
+        the seeds evenly; `hprior_jax.loop.devices.seed_mesh`)."""
         self.cfg = cfg
+        self.mesh = seed_devices.seed_mesh(len(cfg.seeds), devices)
         options = task_options(cfg)
         self.env = make_env(cfg.task, num_envs=1, **options)
         self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes, **options)
@@ -136,14 +141,26 @@ class Engine:
             self.compile_seconds[name] = time.perf_counter() - t0
         return self._compiled[name]
 
+    def per_seed(self, fn, in_axes=(0,), donate_argnums=()):
+        """`fn` of one seed as a jitted program over every seed, split over the mesh:
+        `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share."""
+        return self.over_seed_axis(jax.vmap(fn, in_axes=in_axes), in_axes, donate_argnums)
+
+    def over_seed_axis(self, fn, in_axes=(0,), donate_argnums=()):
+        """As `per_seed` for `fn` that maps over the seed axis itself (e.g. `lax.map`)."""
+        return seed_devices.over_seeds(self.mesh, fn, in_axes, donate_argnums)
+
+    def place(self, tree):
+        """`tree` (leading seed axis) split over the mesh as the compiled programs expect."""
+        return seed_devices.place(self.mesh, tree)
+
     def init_seeds(self, seeds, capacity: int | None = None) -> RunState:
-        keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-        return jax.jit(jax.vmap(partial(self.init, capacity=capacity)))(keys)
+        keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
+        return self.per_seed(partial(self.init, capacity=capacity))(self.place(keys))
 
     def compiled_chunk(self, rs: RunState, step0: int, length: int):
         """The compiled program of `length` env steps (one per length, every phase)."""
-        fn = jax.jit(jax.vmap(partial(self.chunk, length=length), in_axes=(0, None)),
-                     donate_argnums=0)
+        fn = self.per_seed(partial(self.chunk, length=length), (0, None), donate_argnums=0)
         return self.compile(f"chunk/{length}", fn, rs, np.int32(step0))
 
     def run_chunk(self, rs: RunState, step0: int, length: int):
@@ -153,13 +170,14 @@ class Engine:
         return self.method.run_event(rs, step)
 
     def run_eval(self, rs: RunState, seeds, step: int):
-        keys = jnp.stack([eval_key(s, step) for s in seeds])
-        fn = jax.jit(partial(over_seeds, self.evaluate))
+        keys = self.place(np.stack([np.asarray(eval_key(s, step)) for s in seeds]))
+        fn = self.over_seed_axis(partial(over_seeds, self.evaluate), (0, 0))
         return self.compile("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
 
 
 def over_seeds(fn, *args):
-    """`fn` for every seed (leading axis of `args`): one seed after the other on CPU, where
+    """`fn` for every seed (leading axis of `args`, a device's seeds): one seed after the
+    other on CPU, where
     MJX gains nothing from a wider batch and loses cache locality (cheetah, 5 seeds x 10
     episodes: 5.4x one seed's evaluation with `lax.map`, 6.5x vmapped, 5.9x as one flat
     batch of 50 envs); vmapped on accelerators."""

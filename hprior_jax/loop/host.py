@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from hprior_jax.buffers import replay
+from hprior_jax.loop import devices
 from hprior_jax.loop.engine import Engine
 from hprior_jax.loop.run_dir import legacy_checkpoint_name
 from hprior_jax.loop.state import RunState
@@ -62,18 +63,23 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     if resume and ckpt.latest_step() is not None:
         step, rs = restore_latest(ckpt, rs)
     if rs.replay.capacity != cfg.capacity:
-        if replay.has_wrapped(rs.replay):
+        ring = rs.replay.replace(size=devices.fetch(rs.replay.size),
+                                 index=devices.fetch(rs.replay.index))
+        if replay.has_wrapped(ring):
             raise ValueError("the replay buffer of this run has wrapped around; it cannot be "
                              "extended with --steps (start a new run instead)")
-        rs = rs.replace(replay=jax.vmap(partial(replay.grow, capacity=cfg.capacity))(rs.replay))
+        grow = engine.per_seed(partial(replay.grow, capacity=cfg.capacity))
+        rs = rs.replace(replay=grow(engine.place(rs.replay)))
+    rs = engine.place(rs)  # a restored state: onto this run's devices, whatever wrote it
     # the chunk writes transition `t` at ring position t % capacity (unbatched, in place)
-    if np.any(np.asarray(rs.replay.index) != step % rs.replay.capacity):
+    if np.any(devices.fetch(rs.replay.index) != step % rs.replay.capacity):
         raise ValueError(f"{run_dir}: the replay buffer's write position does not match step "
                          f"{step}; the checkpoint is not from this run")
-    log = RunLog(run_dir, seeds, resume_step=step if resume else None)
+    primary = devices.is_primary()  # with several processes, one writes the logs
+    log = RunLog(run_dir, seeds, resume_step=step if resume else None) if primary else _NoLog()
     has_success = engine.task.has_success
     last_ckpt = step
-    bar = _ProgressBar(cfg.steps, step, progress, len(seeds), has_success)
+    bar = _ProgressBar(cfg.steps, step, progress and primary, len(seeds), has_success)
     chunks = 0
     events = set(engine.event_steps())
     interrupt = _InterruptRequest()
@@ -84,14 +90,14 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             if step in events:  # e.g. a feedback round: before this step's update
                 with timer("event_s"):
                     rs, event_metrics = engine.run_event(rs, step)
-                    event_metrics = jax.device_get(event_metrics)
+                    event_metrics = devices.fetch(event_metrics)
                 _finite_or_raise(event_metrics, step, step, seeds, run_dir, last_ckpt)
                 for i, s in enumerate(seeds):
                     log.log(step, s, {k: np.asarray(v)[i] for k, v in event_metrics.items()})
             phase, length = engine.chunk_plan(step)
             with timer("chunk_s"):  # env steps and agent updates: one fused program
                 rs, metrics = engine.run_chunk(rs, step, length)
-                metrics = jax.device_get(metrics)
+                metrics = devices.fetch(metrics)
             keep = engine.phase_metrics(phase)  # drop placeholders of other phases
             metrics = {k: v for k, v in metrics.items()
                        if not k.startswith("train/") or k in keep}
@@ -101,7 +107,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             chunks += 1
             if step % cfg.eval_every == 0 or step == cfg.steps:
                 with timer("eval_s"):
-                    returns, successes = jax.device_get(engine.run_eval(rs, seeds, step))
+                    returns, successes = devices.fetch(engine.run_eval(rs, seeds, step))
                 for i, s in enumerate(seeds):
                     log.log_eval(step, s, float(np.mean(returns[i])),
                                  float(np.mean(successes[i])) if has_success else None)
@@ -130,7 +136,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         bar.close()
         log.close()
         ckpt.close()
-    if (run_dir / "eval.csv").exists():
+    if primary and (run_dir / "eval.csv").exists():
         plot_learning_curve(run_dir / "eval.csv", run_dir / "learning_curve.png",
                             title=f"{cfg.algo} on {cfg.task}")
     return rs
@@ -156,8 +162,19 @@ def _finite_or_raise(metrics: dict, step0: int, step1: int, seeds, run_dir, last
                    f"{run_dir} keeps the checkpoint at step {last_ckpt} and all metrics up "
                    "to it. Lower the learning rate (--sac.lr) or use other seeds, then "
                    f"continue with `hprior train --resume {run_dir}` or start a new run.")
-            (Path(run_dir) / "error.txt").write_text(msg + "\n")
+            if devices.is_primary():
+                (Path(run_dir) / "error.txt").write_text(msg + "\n")
             raise TrainingDiverged(msg)
+
+
+class _NoLog:
+    """The logs of a process that is not the primary: every process computes the same
+    metrics (gathered over all seeds), one writes them."""
+
+    def log(self, *args, **kwargs):
+        pass
+
+    log_eval = flush = close = log
 
 
 class _WallTimer:

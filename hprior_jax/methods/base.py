@@ -46,6 +46,10 @@ class Kit(Protocol):
     def compile(self, name: str, fn, *args):
         """`fn.lower(*args).compile()` once per name, its compile time measured apart."""
 
+    def per_seed(self, fn, in_axes=(0,), donate_argnums=()):
+        """`fn` of one seed as one jitted program over every seed (split over the devices):
+        `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share."""
+
 
 def random_step(kit: Kit) -> StepFn:
     def step(rs: RunState, obs, t, keys):

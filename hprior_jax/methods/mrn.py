@@ -112,7 +112,7 @@ class Mrn(Pebble):
         if step in super().event_steps():
             rs, metrics = super().run_event(rs, step)
         if step in self.meta_steps():
-            fn = jax.jit(jax.vmap(self.meta_step, in_axes=(0, None)), donate_argnums=0)
+            fn = self.kit.per_seed(self.meta_step, (0, None), donate_argnums=0)
             t = np.int32(step)
             compiled = self.kit.compile("meta_step", fn, rs, t)
             t0 = time.perf_counter()

@@ -339,9 +339,9 @@ class Pebble(Method):
         rounds = dict(self.rounds())
         if step in rounds:
             first = step == self.first_round_step
-            fn = jax.jit(jax.vmap(partial(self.feedback_round, first=first,
-                                          queries=self.pcfg.queries_per_round),
-                                  in_axes=(0, None)), donate_argnums=0)
+            fn = self.kit.per_seed(partial(self.feedback_round, first=first,
+                                           queries=self.pcfg.queries_per_round),
+                                   (0, None), donate_argnums=0)
             n = np.int32(rounds[step])
             name = "feedback_round/first" if first else "feedback_round"
             rs, round_metrics = self.kit.compile(name, fn, rs, n)(rs, n)

@@ -191,8 +191,8 @@ class WorldModelPrior(Extension):
     def run_event(self, rs: RunState, step: int):
         pretrain = step == self.first_round_step
         name = "world_model/pretrain" if pretrain else "world_model/update"
-        fn = jax.jit(jax.vmap(partial(self.train_world_model, pretrain=pretrain)),
-                     donate_argnums=0)
+        fn = self.kit.per_seed(partial(self.train_world_model, pretrain=pretrain),
+                               donate_argnums=0)
         compiled = self.kit.compile(name, fn, rs)
         t0 = time.perf_counter()
         rs, metrics = jax.block_until_ready(compiled(rs))
