@@ -26,6 +26,16 @@ def best_seconds(run: Callable, repeats: int, wait: Callable = lambda out: out,
     return best
 
 
+def torch_wait(out=None):
+    """Waits for the PyTorch work queued on the default device (CUDA runs asynchronously, so
+    a timer must stop after it, as `jax.block_until_ready` does for JAX). A no-op on CPU."""
+    import torch
+
+    if torch.get_default_device().type == "cuda":
+        torch.cuda.synchronize()
+    return out
+
+
 def write_rows(rows: list[dict], path: Path, keep: list[dict] = ()) -> None:
     """Write `keep` (rows read earlier, e.g. by `read_rows` for --append) then `rows`."""
     rows = [*keep, *rows]

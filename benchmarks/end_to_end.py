@@ -55,17 +55,22 @@ def perf_totals(metrics_file: Path, first_seed: int) -> dict:
 
 
 def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
-            work: Path, device: str = "cpu") -> dict:
-    run_dir = work / f"{algo}_{n_seeds}"
+            work: Path, device: str = "cpu", extra_args: tuple[str, ...] = (),
+            extra_env: dict | None = None, name: str | None = None) -> dict:
+    """One `hprior train` child; `extra_args` / `extra_env` go to it (e.g. `--devices 2` and
+    the XLA flag that makes CPU devices), `name` labels its folder (default algo_seeds)."""
+    name = name or f"{algo}_{n_seeds}"
+    run_dir = work / name
     seeds = [str(s) for s in SEEDS[:n_seeds]]
     cmd = [sys.executable, "-m", "hprior_jax.cli", "train", "--task", task, "--algo", algo,
-           "--preset", preset, "--seeds", *seeds, "--out", str(run_dir), "--no-progress"]
+           "--preset", preset, "--seeds", *seeds, "--out", str(run_dir), "--no-progress",
+           *extra_args]
     if steps is not None:
         cmd += ["--steps", str(steps)]
-    env = dict(os.environ, HPRIOR_JAX_CACHE=str(work / f"cache_{algo}_{n_seeds}"))
+    env = dict(os.environ, HPRIOR_JAX_CACHE=str(work / f"cache_{name}"), **(extra_env or {}))
     if device == "cpu":
         env["JAX_PLATFORMS"] = "cpu"
-    log_path = work / f"{algo}_{n_seeds}.log"
+    log_path = work / f"{name}.log"
     t0 = time.perf_counter()
     with open(log_path, "w") as log:  # a file, not a pipe: nothing blocks while we wait4
         child = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)

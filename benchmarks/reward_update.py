@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (against_torch, best_seconds, machine, matmul_gflops_s,
+from benchmarks._timing import (torch_wait, against_torch, best_seconds, machine, matmul_gflops_s,
                                 select_device, torch_reference, write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "reward_update.csv"
@@ -116,16 +116,16 @@ def torch_step_ms(size: str, n_pairs: int, repeats: int) -> dict:
             loss = 0.0
             for m, perm in zip(ensemble, perms):
                 idx = perm[start:start + BATCH]
-                r1 = m(torch.from_numpy(seg1[idx])).sum(1)
-                r2 = m(torch.from_numpy(seg2[idx])).sum(1)
+                r1 = m(torch.as_tensor(seg1[idx])).sum(1)
+                r2 = m(torch.as_tensor(seg2[idx])).sum(1)
                 logits = torch.cat([r1, r2], -1)
-                loss = loss + ce(logits, torch.from_numpy(labels[idx]))
+                loss = loss + ce(logits, torch.as_tensor(labels[idx]))
             loss.backward()
             opt.step()
         return loss
 
     epoch()  # warm-up
-    best = best_seconds(epoch, repeats)
+    best = best_seconds(epoch, repeats, torch_wait)
     return {"ms_per_step": 1e3 * best / math.ceil(n_pairs / BATCH),
             "threads": torch.get_num_threads(), "version": torch.__version__}
 

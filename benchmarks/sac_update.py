@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (against_torch, best_seconds, machine, matmul_gflops_s,
+from benchmarks._timing import (torch_wait, against_torch, best_seconds, machine, matmul_gflops_s,
                                 torch_reference, write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sac_update.csv"
@@ -181,7 +181,7 @@ def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
         return critic_loss
 
     update(0)  # warm-up
-    best = best_seconds(lambda: [update(step) for step in range(n_updates)], repeats)
+    best = best_seconds(lambda: [update(step) for step in range(n_updates)], repeats, torch_wait)
     if not torch.isfinite(update(0)):
         raise RuntimeError("PyTorch SAC produced a non-finite loss")
     return {"ms_per_update": 1e3 * best / n_updates, "threads": torch.get_num_threads(),

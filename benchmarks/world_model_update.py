@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from benchmarks._timing import (against_torch, available_memory_gib, best_seconds, machine,
+from benchmarks._timing import (torch_wait, against_torch, available_memory_gib, best_seconds, machine,
                                 matmul_gflops_s, read_rows, select_device, torch_reference,
                                 write_rows, xla_gflop)
 
@@ -33,9 +33,9 @@ OBS, ACT, SEGMENT = 17, 6, 50
 
 
 def world_model_config(size: str, dropout_rng: str | None = None):
-    from hprior_jax.presets import prior_config
+    from hprior_jax.presets import train_preset
 
-    cfg = prior_config("cheetah_run", size).world_model(OBS, ACT, SEGMENT)
+    cfg = train_preset("cheetah_run", "prior", size).prior.world_model(OBS, ACT, SEGMENT)
     return cfg if dropout_rng is None else dataclasses.replace(cfg, dropout_rng=dropout_rng)
 
 
@@ -115,7 +115,7 @@ def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
     (jax_loss, _), grads = jax.value_and_grad(wm.dynamics_loss, has_aux=True)(
         state.params.dyn, state.params.obs, obs, act, None, cfg, True)
     ref = TorchDynamicsUpdate(state, cfg)
-    t_obs, t_act = torch.from_numpy(obs), torch.from_numpy(act)
+    t_obs, t_act = torch.as_tensor(obs), torch.as_tensor(act)
     with torch.no_grad():
         torch_loss = float(ref.loss(t_obs, t_act, training=False))
     loss_gap = abs(torch_loss - float(jax_loss)) / abs(float(jax_loss))
@@ -131,7 +131,7 @@ def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
         return loss
 
     run()  # warm-up
-    best = best_seconds(run, repeats)
+    best = best_seconds(run, repeats, torch_wait)
     return {"ms_per_update": 1e3 * best / n_updates, "threads": torch.get_num_threads(),
             "version": torch.__version__, "loss_rel_gap": loss_gap, "grad_norm_rel_gap": norm_gap}
 

@@ -81,17 +81,17 @@ def _train(argv: list[str]) -> int:
         cfg = _parse_config(default, rest if help_asked else _tyro_args(argv),
                             description=_train_description(algo))
         if several and not cfg.out:
-            raise devices.DeviceCountError("a run of several processes needs --out: every "
-                                           "process must name the same run directory")
+            raise ValueError("a run of several processes needs --out: every process must "
+                             "name the same run directory")
         cfg = dataclasses.replace(cfg, out=str(run_dirs.run_dir_path(cfg)))
-        if devices.is_primary():
-            run_dirs.check_out_dir(Path(cfg.out))
+        run_dirs.check_out_dir(Path(cfg.out))  # in every process: all refuse a bad --out
         enable_compilation_cache()
         # every configuration check runs before anything is written
         engine = Engine(cfg, known.devices)
+        devices.barrier("run directory checked")
         if devices.is_primary():
             run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
-        devices.barrier("run directory")
+        devices.barrier("run directory made")
         run_dir = Path(cfg.out)
         saved_capacity = None
     print(f"run directory: {run_dir}", flush=True)

@@ -71,3 +71,31 @@ def test_op_profile_maps_xla_ops_to_their_jax_source():
     assert source_of(sources["fusion.3"]) == ("bwd", "bind,jnd->bnij/transpose")
     assert source_of(sources["rng.1"]) == ("fwd", "rng (dropout bits)")
     assert source_of("jit(run)/jvp(M)/layers/Dropout_0/select_n") == ("fwd", "dropout (apply mask)")
+
+
+def test_gpu_suite_runs_every_part_at_tiny_sizes_on_cpu(tmp_path):
+    """`python -m benchmarks.gpu_suite --scale tiny`: the GPU suite's every code path on a
+    CPU (a child process: the suite sets PyTorch's default device)."""
+    import csv
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from benchmarks.gpu_suite import PARTS
+
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, "-m", "benchmarks.gpu_suite", "--scale", "tiny",
+                           "--out", str(tmp_path)], cwd=root, capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(root)), timeout=900)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    read = lambda name: list(csv.DictReader(open(tmp_path / f"{name}.csv", newline="")))
+    assert [r["part"] for r in read("suite")] == list(PARTS)
+    for part in PARTS:
+        rows = read(part)
+        assert rows and all(r["device"].startswith("cpu:") for r in rows), part
+    assert float(read("env")[0]["env_steps_per_s"]) > 0
+    assert all(float(r["jax_ms"]) > 0 for part in ("sac", "reward", "world_model")
+               for r in read(part))
+    e2e = read("end_to_end")[0]
+    assert int(e2e["steps"]) == 20 and float(e2e["env_steps_per_s"]) > 0
