@@ -322,6 +322,13 @@ def _grid(argv: list[str]) -> int:
                         help="MetaWorld scene, as `hprior train --hand`; grids run before "
                              "this option were run with `free`")
     parser.add_argument("--out", required=True, help="results directory")
+    parser.add_argument("--devices", type=int, default=None,
+                        help="devices to use (default: all); runs train side by side, each "
+                             "over as many as split its seeds evenly")
+    parser.add_argument("--estimate", action="store_true",
+                        help="time one chunk per phase, the first events and an evaluation "
+                             "of every run first, pack the runs by those times and print "
+                             "the estimated wall time")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     from hprior_jax.experiments.grid import run_grid
@@ -336,7 +343,7 @@ def _grid(argv: list[str]) -> int:
     enable_compilation_cache()
     try:
         run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
-                 progress=not args.no_progress)
+                 progress=not args.no_progress, devices=args.devices, estimate=args.estimate)
     except host.Interrupted as e:
         print(f"\n{e}. Continue the grid with the same command.", file=sys.stderr, flush=True)
         return 130

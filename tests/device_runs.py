@@ -5,6 +5,7 @@ device count is fixed when jax starts):
     python -m tests.device_runs full    OUT DEVICES     a whole run on DEVICES devices
     python -m tests.device_runs cut     OUT DEVICES     the same run stopped after 3 chunks
     python -m tests.device_runs resume  OUT DEVICES     continue OUT on DEVICES devices
+    python -m tests.device_runs grid    OUT DEVICES     GRID_TASKS x sac, 2 seeds, --estimate
 With JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID set, `full` is one process
 of a multi-process run (the command every host runs)."""
 import sys
@@ -22,11 +23,26 @@ TOY = ["--task", "toy_point", "--algo", "pebble", "--preset", "smoke", "--num-se
        "--steps", "120", "--checkpoint-every", "40", "--seeds", "1", "2", "3", "4",
        "--no-progress"]
 STOP_AFTER_CHUNKS = 3  # step 60: between two checkpoints, after the first feedback round
+GRID_TASKS, GRID_SEEDS = ("toy_point", "toy_scaled"), (1, 2)
+
+
+def grid_overrides() -> dict:
+    from hprior_jax.agents.sac import SACConfig
+
+    return dict(steps=80, num_seed_steps=20, chunk_steps=20, eval_every=40,
+                checkpoint_every=40, num_eval_episodes=2,
+                sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8))
 
 
 def main(mode: str, out: str, devices: str) -> int:
     if mode == "full":
         return cli.main(["train", *TOY, "--out", out, "--devices", devices])
+    if mode == "grid":
+        from hprior_jax.experiments.grid import run_grid
+
+        run_grid(out, GRID_TASKS, ["sac"], GRID_SEEDS, "smoke", grid_overrides(),
+                 progress=False, devices=int(devices), estimate=True)
+        return 0
     if mode == "resume":
         return cli.main(["train", "--resume", out, "--devices", devices, "--no-progress"])
     assert mode == "cut", mode

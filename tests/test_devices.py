@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.device_runs import STOP_AFTER_CHUNKS
+from tests.device_runs import GRID_SEEDS, GRID_TASKS, STOP_AFTER_CHUNKS, grid_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -123,3 +123,19 @@ def test_two_processes_write_one_run_directory_equal_to_one_process(runs, tmp_pa
         p.name for p in (runs / "full4").iterdir())
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["120", "80"]
     assert_same_run(out, runs / "full4")
+
+
+def test_a_grid_trains_runs_side_by_side_on_groups_of_devices(tmp_path):
+    """4 devices, 2 seeds a run: two groups of 2 devices train the grid's two runs at once,
+    after a calibration that estimates each; each run equals the same run on one device."""
+    from hprior_jax.experiments.grid import run_grid
+
+    done = _ok(_run("grid", tmp_path / "side", 4))
+    assert "2 run(s) at a time, each over 2 device(s)" in done.stdout
+    assert "devices [0, 1]: toy_point/sac ~" in done.stdout
+    assert "devices [2, 3]: toy_scaled/sac ~" in done.stdout
+    assert "estimated wall time" in done.stdout
+    run_grid(tmp_path / "alone", GRID_TASKS, ["sac"], GRID_SEEDS, "smoke", grid_overrides(),
+             progress=False)
+    for task in GRID_TASKS:
+        assert_same_run(tmp_path / "side" / task / "sac", tmp_path / "alone" / task / "sac")

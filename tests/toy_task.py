@@ -17,6 +17,11 @@ class ToyPoint(Task):
     has_success = True
     domain = "dm_control"
 
+    def __init__(self, contacts: str = "floor"):
+        # the DM Control physics option, which configs of runs made before it existed restore
+        # as "all" (tests/fixtures/format1_prior); a point mass has no contacts to choose
+        self.contacts = contacts
+
     def reset(self, key):
         pos = jax.random.uniform(key, (), minval=-1.0, maxval=1.0)
         data = {"pos": pos, "vel": jnp.zeros(()), "resets": jnp.ones((), jnp.int32)}

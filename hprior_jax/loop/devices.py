@@ -46,13 +46,24 @@ def initialize_distributed() -> bool:
     return False
 
 
+def devices_per_run(num_seeds: int, num_devices: int) -> int:
+    """The most devices (at most `num_devices`) that split `num_seeds` seeds evenly."""
+    return max(d for d in range(1, num_devices + 1) if num_seeds % d == 0)
+
+
 def is_primary() -> bool:
     return jax.process_index() == 0
 
 
-def seed_mesh(num_seeds: int, devices: int | None = None) -> Mesh:
-    """A mesh of `devices` devices (default: as many as divide the seeds evenly) along the
-    seed axis. Every device holds the same number of seeds."""
+def seed_mesh(num_seeds: int, devices=None) -> Mesh:
+    """A mesh of `devices` devices (default: as many as divide the seeds evenly; a list of
+    devices: exactly those) along the seed axis. Every device holds the same number of
+    seeds."""
+    if devices is not None and not isinstance(devices, int):
+        if num_seeds % len(devices):
+            raise DeviceCountError(f"{len(devices)} devices do not divide the {num_seeds} "
+                                   "seeds; every device holds the same number of seeds")
+        return Mesh(np.array(list(devices)), (SEEDS,))
     available = jax.devices()
     if jax.process_count() > 1:
         # every process runs the same programs, so every one must own some of the seeds
@@ -64,7 +75,7 @@ def seed_mesh(num_seeds: int, devices: int | None = None) -> Mesh:
                 f"(--devices {len(available)})")
         return Mesh(np.array(available), (SEEDS,))
     if devices is None:
-        n = max(d for d in range(1, len(available) + 1) if num_seeds % d == 0)
+        n = devices_per_run(num_seeds, len(available))
         if n < len(available) and n < num_seeds:
             print(f"{num_seeds} seeds on {len(available)} devices: using {n} (every device "
                   f"holds the same number of seeds; give a multiple of {len(available)} seeds "

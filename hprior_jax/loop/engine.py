@@ -27,9 +27,9 @@ from hprior_jax.methods import registry
 
 
 class Engine:
-    def __init__(self, cfg, devices: int | None = None):
+    def __init__(self, cfg, devices=None):
         """`devices`: how many devices the seeds are split over (default: as many as divide
-        the seeds evenly; `hprior_jax.loop.devices.seed_mesh`)."""
+        the seeds evenly), or which (`hprior_jax.loop.devices.seed_mesh`)."""
         self.cfg = cfg
         self.mesh = seed_devices.seed_mesh(len(cfg.seeds), devices)
         options = task_options(cfg)
@@ -176,11 +176,10 @@ class Engine:
 
 
 def over_seeds(fn, *args):
-    """`fn` for every seed (leading axis of `args`, a device's seeds): one seed after the
-    other on CPU, where
-    MJX gains nothing from a wider batch and loses cache locality (cheetah, 5 seeds x 10
-    episodes: 5.4x one seed's evaluation with `lax.map`, 6.5x vmapped, 5.9x as one flat
-    batch of 50 envs); vmapped on accelerators."""
+    """`fn` for every seed (leading axis of `args`: a device's seeds): one seed after the
+    other on CPU, where MJX gains nothing from a wider batch and loses cache locality
+    (cheetah, 5 seeds x 10 episodes: 5.4x one seed's evaluation with `lax.map`, 6.5x
+    vmapped, 5.9x as one flat batch of 50 envs); vmapped on accelerators."""
     if jax.default_backend() == "cpu":
         return jax.lax.map(lambda a: fn(*a), args)
     return jax.vmap(fn)(*args)

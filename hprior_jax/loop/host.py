@@ -39,14 +39,15 @@ class Interrupted(Exception):
 
 def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         max_chunks: int | None = None, saved_capacity: int | None = None,
-        engine: Engine | None = None) -> RunState:
+        engine: Engine | None = None, interrupt: "StopRequest | None" = None) -> RunState:
     """Trains `cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to resume).
 
     `max_chunks` stops early after that many chunks (used by tests to simulate an
     interruption); the state is checkpointed at the stop. `saved_capacity` is the replay
     capacity of the checkpoints when a resumed run's budget was extended. `engine`: one
     already built for `cfg` (the CLI builds it before writing anything, so configuration
-    errors leave no run directory behind).
+    errors leave no run directory behind). `interrupt`: a `StopRequest` shared by runs that
+    train side by side in threads (the grid's), which the main thread's Ctrl-C sets.
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
@@ -82,7 +83,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     bar = _ProgressBar(cfg.steps, step, progress and primary, len(seeds), has_success)
     chunks = 0
     events = set(engine.event_steps())
-    interrupt = _InterruptRequest()
+    own_interrupt = interrupt is None
+    interrupt = interrupt or StopRequest()
     try:
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
@@ -132,7 +134,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             if stop and step < cfg.steps:
                 raise Interrupted(run_dir, step)
     finally:
-        interrupt.restore()
+        if own_interrupt:
+            interrupt.restore()
         bar.close()
         log.close()
         ckpt.close()
@@ -209,7 +212,7 @@ def _log_chunk(log, seeds, step0: int, metrics: dict, has_success: bool) -> None
             log.log(step0 + done.shape[1], s, losses)
 
 
-class _InterruptRequest:
+class StopRequest:
     """SIGINT handler for the run: the first Ctrl-C is a request to stop after the chunk in
     flight (XLA cannot be interrupted mid-program anyway), the second stops at once. Only
     the main thread can own signals; elsewhere Ctrl-C keeps its default behaviour."""
