@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hprior_jax.run_log import read_eval_rows  # noqa: E402
@@ -29,13 +29,14 @@ def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "") -> Path:
     panels = [("true_return", "evaluation true return")]
     if read_eval_csv(eval_csv, "success"):
         panels.insert(0, ("success", "evaluation success rate"))
-    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4), squeeze=False)
+    # a Figure of its own, not pyplot's global state: the grid writes curves from threads
+    fig = Figure(figsize=(6 * len(panels), 4))
+    axes = fig.subplots(1, len(panels), squeeze=False)
     for ax, (column, ylabel) in zip(axes[0], panels):
         _plot_seeds(ax, read_eval_csv(eval_csv, column), ylabel)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(out_png, dpi=120)
-    plt.close(fig)
     return Path(out_png)
 
 
