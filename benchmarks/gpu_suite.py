@@ -155,8 +155,10 @@ def main(argv=None) -> int:
         else:
             rows = update_rows(part, s, torch_on)
         elapsed = time.perf_counter() - t0
-        write_rows([{"device": device, "scale": args.scale, **r} for r in rows],
-                   out / f"{part}.csv")
+        # the device's name over end_to_end's own `device` column (its cpu/gpu flag)
+        write_rows([{"device": device, "scale": args.scale, **{k: v for k, v in r.items()
+                                                               if k != "device"}}
+                    for r in rows], out / f"{part}.csv")
         seconds.append({"device": device, "scale": args.scale, "part": part,
                         "wall_s": elapsed})
         print(f"{part}: {elapsed:.0f} s", flush=True)

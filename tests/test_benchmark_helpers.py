@@ -73,29 +73,42 @@ def test_op_profile_maps_xla_ops_to_their_jax_source():
     assert source_of("jit(run)/jvp(M)/layers/Dropout_0/select_n") == ("fwd", "dropout (apply mask)")
 
 
-def test_gpu_suite_runs_every_part_at_tiny_sizes_on_cpu(tmp_path):
-    """`python -m benchmarks.gpu_suite --scale tiny`: the GPU suite's every code path on a
-    CPU (a child process: the suite sets PyTorch's default device)."""
+def _gpu_suite_tiny(out, parts):
+    """`python -m benchmarks.gpu_suite --scale tiny --parts ...` in a child (the suite sets
+    PyTorch's default device) -> {part: rows}."""
     import csv
     import os
     import subprocess
     import sys
     from pathlib import Path
 
-    from benchmarks.gpu_suite import PARTS
-
     root = Path(__file__).resolve().parent.parent
     done = subprocess.run([sys.executable, "-m", "benchmarks.gpu_suite", "--scale", "tiny",
-                           "--out", str(tmp_path)], cwd=root, capture_output=True, text=True,
-                          env=dict(os.environ, PYTHONPATH=str(root)), timeout=900)
+                           "--parts", *parts, "--out", str(out)], cwd=root, capture_output=True,
+                          text=True, env=dict(os.environ, PYTHONPATH=str(root)), timeout=900)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
-    read = lambda name: list(csv.DictReader(open(tmp_path / f"{name}.csv", newline="")))
-    assert [r["part"] for r in read("suite")] == list(PARTS)
-    for part in PARTS:
-        rows = read(part)
-        assert rows and all(r["device"].startswith("cpu:") for r in rows), part
-    assert float(read("env")[0]["env_steps_per_s"]) > 0
+    read = lambda name: list(csv.DictReader(open(out / f"{name}.csv", newline="")))
+    assert [r["part"] for r in read("suite")] == list(parts)
+    rows = {part: read(part) for part in parts}
+    for part, part_rows in rows.items():
+        assert part_rows and all(r["device"].startswith("cpu:") for r in part_rows), part
+    return rows
+
+
+def test_gpu_suite_measures_env_throughput_at_tiny_sizes_on_cpu(tmp_path):
+    """The GPU suite's driver and its env part on a CPU (its other parts: the slow tests)."""
+    rows = _gpu_suite_tiny(tmp_path, ("env",))
+    assert float(rows["env"][0]["env_steps_per_s"]) > 0
+
+
+@pytest.mark.slow  # CI time: 4 min here (the appendix-size updates and their references)
+def test_gpu_suite_measures_updates_at_tiny_sizes_on_cpu(tmp_path):
+    rows = _gpu_suite_tiny(tmp_path, ("sac", "reward", "world_model"))
     assert all(float(r["jax_ms"]) > 0 for part in ("sac", "reward", "world_model")
-               for r in read(part))
-    e2e = read("end_to_end")[0]
+               for r in rows[part])
+
+
+@pytest.mark.slow  # CI time: the child run compiles cheetah_run's programs (~2 min)
+def test_gpu_suite_end_to_end_part_at_tiny_sizes_on_cpu(tmp_path):
+    e2e = _gpu_suite_tiny(tmp_path, ("end_to_end",))["end_to_end"][0]
     assert int(e2e["steps"]) == 20 and float(e2e["env_steps_per_s"]) > 0

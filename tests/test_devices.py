@@ -4,6 +4,7 @@ two-process `jax.distributed` run that writes one run directory."""
 import csv
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -83,14 +84,22 @@ def test_four_seeds_on_four_devices_equal_one_device(runs):
                            == 4 for m in layouts)
 
 
-@pytest.mark.parametrize("devices", [2, 1])
-def test_a_checkpoint_of_four_devices_resumes_on_fewer(runs, tmp_path, devices):
-    cut = tmp_path / "cut"
+@pytest.fixture(scope="module")
+def cut_on_four(tmp_path_factory):
+    """The same run stopped after 3 chunks on 4 devices (step 60: a checkpoint between two
+    regular ones, after the first feedback round)."""
+    cut = tmp_path_factory.mktemp("cut") / "run"
     _ok(_run("cut", cut, 4))
-    assert len(_eval_rows(cut)) == 4  # step 40 only: stopped at step 20 * STOP_AFTER_CHUNKS
-    assert STOP_AFTER_CHUNKS * 20 == 60
-    _ok(_run("resume", cut, devices))
-    assert_same_run(cut, runs / "full4")
+    assert len(_eval_rows(cut)) == 4 and STOP_AFTER_CHUNKS * 20 == 60  # step 40 only
+    return cut
+
+
+@pytest.mark.parametrize("devices", [2, 1])
+def test_a_checkpoint_of_four_devices_resumes_on_fewer(runs, cut_on_four, tmp_path, devices):
+    run = tmp_path / "run"
+    shutil.copytree(cut_on_four, run)
+    _ok(_run("resume", run, devices))
+    assert_same_run(run, runs / "full4")
 
 
 def test_a_seed_count_the_devices_cannot_split_is_refused_by_name(tmp_path):
