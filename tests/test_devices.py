@@ -134,6 +134,7 @@ def test_two_processes_write_one_run_directory_equal_to_one_process(runs, tmp_pa
     assert_same_run(out, runs / "full4")
 
 
+@pytest.mark.slow  # CI time: 2 min (a calibration and two grids)
 def test_a_grid_trains_runs_side_by_side_on_groups_of_devices(tmp_path):
     """4 devices, 2 seeds a run: two groups of 2 devices train the grid's two runs at once,
     after a calibration that estimates each; each run equals the same run on one device."""
