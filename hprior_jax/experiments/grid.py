@@ -49,7 +49,6 @@ def run_status(cfg: RunConfig) -> str:
 
     A directory holding a run of another configuration is an error: mixing budgets or
     seeds in one table would be silent nonsense."""
-    from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.loop.run_dir import load_run_config
 
     run_dir = Path(cfg.out)
@@ -64,14 +63,21 @@ def run_status(cfg: RunConfig) -> str:
         raise ValueError(
             f"{run_dir} was run with a different configuration ({', '.join(differs)}); use "
             "another grid directory (--out) or the grid options that made it")
-    if not (run_dir / "checkpoints").exists():
-        return "interrupted"
-    ckpt = Checkpointer(run_dir / "checkpoints")
+    latest = latest_checkpoint_step(run_dir)
+    return "complete" if latest is not None and latest >= cfg.steps else "interrupted"
+
+
+def latest_checkpoint_step(run_dir: Path) -> int | None:
+    """The step of `run_dir`'s last checkpoint (None: none yet)."""
+    from hprior_jax.checkpoint import Checkpointer
+
+    if not (Path(run_dir) / "checkpoints").exists():
+        return None
+    ckpt = Checkpointer(Path(run_dir) / "checkpoints")
     try:
-        latest = ckpt.latest_step()
+        return ckpt.latest_step()
     finally:
         ckpt.close()
-    return "complete" if latest is not None and latest >= cfg.steps else "interrupted"
 
 
 def _jsonable(obj):
@@ -124,10 +130,7 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
             print(f"{r.task} {r.algo}: complete, skipped ({r.run_dir})", flush=True)
     todo = [r for r in runs if r.status != "complete"]
     available = jax.local_devices()
-    n = devices or len(available)
-    if not 1 <= n <= len(available):
-        raise seed_devices.DeviceCountError(f"--devices {n}: this process sees "
-                                            f"{len(available)} device(s)")
+    n = seed_devices.checked_count(devices or len(available), available)
     per_run = seed_devices.devices_per_run(len(seeds), n)
     groups = [available[i * per_run:(i + 1) * per_run] for i in range(n // per_run)]
     seconds = {}
@@ -212,7 +215,6 @@ def calibrate(cfg: RunConfig, devices) -> float:
     persistent cache when the run starts)."""
     import jax
 
-    from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.loop.engine import Engine
 
     engine = Engine(cfg, devices)
@@ -239,11 +241,5 @@ def calibrate(cfg: RunConfig, devices) -> float:
         total += each[0] + (len(events) - 1) * each[-1]
     evaluations = -(-cfg.steps // cfg.eval_every)
     total += evaluations * seconds(lambda rs: engine.run_eval(rs, seeds, cfg.eval_every))
-    done = 0
-    if (Path(cfg.out) / "checkpoints").exists():
-        ckpt = Checkpointer(Path(cfg.out) / "checkpoints")
-        try:
-            done = ckpt.latest_step() or 0
-        finally:
-            ckpt.close()
+    done = latest_checkpoint_step(cfg.out) or 0
     return total * (cfg.steps - done) / cfg.steps

@@ -46,6 +46,14 @@ def initialize_distributed() -> bool:
     return False
 
 
+def checked_count(n: int, available) -> int:
+    """`n`, refused with its reason unless this process sees that many devices."""
+    if not 1 <= n <= len(available):
+        raise DeviceCountError(f"--devices {n}: this process sees {len(available)} "
+                               f"device(s) ({available[0].platform})")
+    return n
+
+
 def devices_per_run(num_seeds: int, num_devices: int) -> int:
     """The most devices (at most `num_devices`) that split `num_seeds` seeds evenly."""
     return max(d for d in range(1, num_devices + 1) if num_seeds % d == 0)
@@ -81,10 +89,7 @@ def seed_mesh(num_seeds: int, devices=None) -> Mesh:
                   f"holds the same number of seeds; give a multiple of {len(available)} seeds "
                   "to use them all)", flush=True)
     else:
-        n = devices
-        if not 1 <= n <= len(available):
-            raise DeviceCountError(f"--devices {n}: this process sees {len(available)} "
-                                   f"device(s) ({available[0].platform})")
+        n = checked_count(devices, available)
         if num_seeds % n:
             raise DeviceCountError(f"--devices {n} does not divide the {num_seeds} seeds; "
                                    f"every device holds the same number of seeds")
