@@ -47,6 +47,8 @@ def _train(argv: list[str]) -> int:
         pre.add_argument(name, default=None)
     pre.add_argument("--no-progress", action="store_true")
     pre.add_argument("--devices", type=int, default=None)
+    for name, kind in LABEL_OPTIONS.items():
+        pre.add_argument(name, type=kind, default=None)
     known, rest = pre.parse_known_args(argv)
     help_asked = "-h" in rest or "--help" in rest
 
@@ -97,7 +99,7 @@ def _train(argv: list[str]) -> int:
     print(f"run directory: {run_dir}", flush=True)
     try:
         host.run(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
-                 saved_capacity=saved_capacity, engine=engine)
+                 saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known))
     except host.Interrupted as e:
         print(f"\n{e}. Continue with:\n  hprior train --resume {run_dir}", file=sys.stderr,
               flush=True)
@@ -138,14 +140,37 @@ def _train_description(algo: str) -> str:
             "--checkpoint-every and --num-eval-episodes may change. Ctrl-C once finishes the "
             "chunk in flight and saves a checkpoint; twice stops at once. --devices N splits "
             "the seeds over N devices (default: as many as divide the seeds evenly; a run may "
-            "resume on another count); several hosts: README, 'Many devices and hosts'.")
+            "resume on another count); several hosts: README, 'Many devices and hosts'. "
+            "--teacher human: you answer each feedback round's queries in a browser (the run "
+            "prints the address and waits); --label-host H, --label-port P (default "
+            "127.0.0.1:8765; another host needs --label-token, made up if not given), "
+            "--label-timeout S (stop with a checkpoint after S seconds without an answer; "
+            "default 3600).")
+
+
+# `hprior train` options of the labelling page a human teacher's run serves (not config:
+# a resumed run may serve elsewhere)
+LABEL_OPTIONS = {"--label-host": str, "--label-port": int, "--label-token": str,
+                 "--label-timeout": float}
+
+
+def _ask_options(known):
+    from hprior_jax.labelling.server import ServerOptions
+    from hprior_jax.labelling.teacher import AskOptions
+
+    default = ServerOptions()
+    server = ServerOptions(known.label_host or default.host,
+                           default.port if known.label_port is None else known.label_port,
+                           known.label_token)
+    timeout = AskOptions().timeout_s if known.label_timeout is None else known.label_timeout
+    return AskOptions(server=server, timeout_s=timeout)
 
 
 def _tyro_args(argv: list[str]) -> list[str]:
     """argv less the options the pre-parser owns (tyro knows --task/--algo/--preset as
     config fields, but not these)."""
     out = [a for a in argv if a != "--no-progress"]
-    for name in ("--teacher", "--resume", "--eval-budget", "--devices"):
+    for name in ("--teacher", "--resume", "--eval-budget", "--devices", *LABEL_OPTIONS):
         out = _drop_option(out, name)
     return out
 
@@ -220,9 +245,6 @@ def _export(argv: list[str]) -> int:
     return 0
 
 
-LOOPBACK = ("127.0.0.1", "localhost", "::1")
-
-
 def _label(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="hprior label",
@@ -258,21 +280,13 @@ def _label(argv: list[str]) -> int:
         print(f"wrote {len(ids)} queries to {args.dir}", flush=True)
         if args.build_only:
             return 0
+    from hprior_jax.labelling.server import ServerOptions, serve
+
     folder = QueryFolder(args.dir)
-    token = args.token
-    if token is None and args.host not in LOOPBACK:
-        import secrets
-
-        token = secrets.token_urlsafe(16)
-    import uvicorn
-
-    from hprior_jax.labelling.app import make_app
-
-    shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
-    url = f"http://{shown}:{args.port}/" + (f"?token={token}" if token else "")
-    print(f"labelling {args.dir}: open {url} (Ctrl-C stops; answers are saved as given)",
-          flush=True)
-    uvicorn.run(make_app(folder, token), host=args.host, port=args.port, log_level="warning")
+    options = ServerOptions(args.host, args.port, args.token).resolved()
+    print(f"labelling {args.dir}: open {options.url()} (Ctrl-C stops; answers are saved as "
+          "given)", flush=True)
+    serve(folder, options)
     return 0
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-FIELDS = ("qpos", "qvel", "mocap_pos", "mocap_quat")  # what positions a frame
+from tasks.base import RENDER_FIELDS as FIELDS  # what positions a frame
 
 
 def _install_gl_context() -> None:

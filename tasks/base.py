@@ -19,6 +19,9 @@ import jax.numpy as jnp
 from flax import struct
 
 
+RENDER_FIELDS = ("qpos", "qvel", "mocap_pos", "mocap_quat")  # what positions a frame
+
+
 @struct.dataclass
 class TaskState:
     """State of one environment after `reset` or `step`.
@@ -58,6 +61,12 @@ class Task(abc.ABC):
     @abc.abstractmethod
     def step(self, state: TaskState, action: jax.Array) -> TaskState:
         """Apply `action` (in [-1, 1]^action_size, clipped) for one control step."""
+
+    def render_state(self, data) -> dict[str, jax.Array]:
+        """What positions a rendered frame of physics state `data`: those of RENDER_FIELDS
+        the model has (cheetah has no mocap bodies), traceable (the chunk records them for a
+        person's labels)."""
+        return {k: getattr(data, k) for k in RENDER_FIELDS if getattr(data, k).size}
 
     def __repr__(self) -> str:
         return (

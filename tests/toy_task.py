@@ -37,6 +37,10 @@ class ToyPoint(Task):
         return state.replace(data=data, obs=self._obs(data), true_reward=reward,
                              success=(jnp.abs(pos - 0.5) < 0.05).astype(jnp.float32))
 
+    def render_state(self, data):
+        # what a person's labels record of a state (no model to render: the test answers)
+        return {"qpos": data["pos"][None], "qvel": data["vel"][None]}
+
     @staticmethod
     def _obs(data):
         return jnp.stack([data["pos"], data["vel"]]).astype(jnp.float32)

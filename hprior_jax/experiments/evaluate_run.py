@@ -49,12 +49,10 @@ def episode_states(engine, actor_params, keys: jax.Array,
                    deterministic: bool = True) -> dict[str, np.ndarray]:
     """Whole episodes' physics states [N, T + 1, ...] (the first after reset), one per key
     in `keys` [N, 2], with the deterministic (tanh of the mean) or the sampling policy."""
-    from hprior_jax.render import FIELDS
-
     env = engine.env  # one env, with the run's task options
 
     def snapshot(state):
-        return {k: getattr(state.task.data, k)[0] for k in FIELDS}
+        return {k: v[0] for k, v in env.task.render_state(state.task.data).items()}
 
     def one(key):
         def body(state, t):

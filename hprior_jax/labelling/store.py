@@ -1,7 +1,8 @@
 """A query folder: what is asked (written by a producer) and what was answered (by the app).
 
-    DIR/queries.jsonl      one query per line: {"id", "round", "task", "fps"}
-    DIR/segments/<id>.npz  the two segments' physics states (qpos1, qpos2, ... [T, ...])
+    DIR/queries.jsonl      one query per line: {"id", "round", "task", "fps"[, "seed"]}
+    DIR/segments/<id>.npz  the two segments' physics states (qpos1, qpos2, ... [T, ...]),
+                           and where a run wrote them, their true rewards (true_reward1, 2)
     DIR/clips/<id>_<1|2>.mp4   rendered on first request, then served from here
     DIR/answers.jsonl      one record per answer or undo, appended and fsync'd
 
@@ -41,22 +42,33 @@ class Query:
     round: int
     task: str
     fps: float
+    seed: int | None = None  # the training seed whose replay buffer a run's query comes from
+
+
+def query_id(round_: int, index: int, seed: int | None = None) -> str:
+    return f"r{round_}-" + ("" if seed is None else f"s{seed}-") + f"q{index:04d}"
 
 
 def write_queries(folder: Path, task: str, round_: int, segments: list[tuple[dict, dict]],
-                  fps: float, first_index: int = 0) -> list[str]:
+                  fps: float, first_index: int = 0, seed: int | None = None) -> list[str]:
     """Adds one round of queries: `segments[i]` = (states of segment 1, of segment 2), each
-    {field: array [T, ...]} (`hprior_jax.render.FIELDS`). Returns their ids."""
+    {field: array [T, ...]} (`hprior_jax.render.FIELDS`, and any extras such as
+    true_reward). Returns their ids."""
     folder = Path(folder)
     (folder / "segments").mkdir(parents=True, exist_ok=True)
     ids = []
+    for i, (one, two) in enumerate(segments, start=first_index):
+        qid = query_id(round_, i, seed)
+        arrays = {f"{k}1": v for k, v in one.items()} | {f"{k}2": v for k, v in two.items()}
+        path = folder / "segments" / f"{qid}.npz"
+        np.savez(path.with_suffix(".tmp.npz"), **arrays)
+        os.replace(path.with_suffix(".tmp.npz"), path)
+        ids.append(qid)
+    # the queries become visible (to a server reading the folder) only once their segments are
     with open(folder / "queries.jsonl", "a") as f:
-        for i, (one, two) in enumerate(segments, start=first_index):
-            qid = f"r{round_}-q{i:04d}"
-            arrays = {f"{k}1": v for k, v in one.items()} | {f"{k}2": v for k, v in two.items()}
-            np.savez(folder / "segments" / f"{qid}.npz", **arrays)
-            f.write(json.dumps({"id": qid, "round": round_, "task": task, "fps": fps}) + "\n")
-            ids.append(qid)
+        for qid in ids:
+            record = {"id": qid, "round": round_, "task": task, "fps": fps}
+            f.write(json.dumps(record | ({} if seed is None else {"seed": seed})) + "\n")
         f.flush()
         os.fsync(f.fileno())
     return ids
@@ -76,6 +88,12 @@ class QueryFolder:
         lines = (self.dir / "queries.jsonl").read_text().splitlines()
         return [Query(**json.loads(line)) for line in lines if line.strip()]
 
+    def segment_arrays(self, qid: str) -> dict[str, np.ndarray]:
+        """Everything stored of query `qid`'s two segments ({name + side: array})."""
+        self.query(qid)
+        with np.load(self.dir / "segments" / f"{qid}.npz") as z:
+            return {k: z[k] for k in z.files}
+
     def query(self, qid: str) -> Query:
         if not isinstance(qid, str) or not ID_PATTERN.match(qid):
             raise LabelError(f"bad query id {qid!r}: ids are letters, digits, '-' and '_'")
@@ -85,9 +103,7 @@ class QueryFolder:
         return found
 
     def segment_states(self, qid: str, side: int) -> dict[str, np.ndarray]:
-        self.query(qid)
-        with np.load(self.dir / "segments" / f"{qid}.npz") as z:
-            return {k[:-1]: z[k] for k in z.files if k.endswith(str(side))}
+        return {k[:-1]: v for k, v in self.segment_arrays(qid).items() if k.endswith(str(side))}
 
     # -- what was answered --------------------------------------------------------------
     def _records(self) -> list[dict]:

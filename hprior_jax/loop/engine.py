@@ -39,6 +39,7 @@ class Engine:
         self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
         self._compiled: dict = {}
         self.compile_seconds: dict[str, float] = {}
+        self.person = None  # a human teacher, attached by the host loop when one is asked
         self.method = registry.get(cfg.algo).build(cfg, self)
         self.phases = self.method.phases()
         starts = [p.start for p in self.phases]
@@ -73,10 +74,19 @@ class Engine:
     def init(self, seed_key: jax.Array, capacity: int | None = None) -> RunState:
         k_sac, k_env, k_run, k_method = jax.random.split(seed_key, 4)
         capacity = capacity or self.cfg.capacity
+        env = self.env.reset(k_env)
         return RunState(
             sac=self.sac.init(k_sac),
-            replay=replay.init(capacity, self.env.obs_size, self.env.action_size),
-            env=self.env.reset(k_env), key=k_run, method=self.method.init(k_method))
+            replay=replay.init(capacity, self.env.obs_size, self.env.action_size,
+                               physics=self._physics(env)),
+            env=env, key=k_run, method=self.method.init(k_method))
+
+    def _physics(self, env_state):
+        """The physics state behind the env's observation, where the method records it (a
+        person labels clips rendered from it); None otherwise."""
+        if not self.method.asks_person:
+            return None
+        return {k: v[0] for k, v in self.task.render_state(env_state.task.data).items()}
 
     def chunk(self, rs: RunState, step0: jax.Array, *, length: int):
         """`length` env steps from global step `step0`. A chunk never crosses a phase change,
@@ -112,7 +122,7 @@ class Engine:
             # unbatched under vmap: a dynamic-update-slice, not a scatter
             buf = replay.add(rs.replay, tr.obs[0], tr.action[0], reward, tr.next_obs[0],
                              1.0 - tr.terminated[0].astype(jnp.float32), tr.true_reward[0],
-                             index=write_at)
+                             index=write_at, physics=self._physics(rs.env))
             metrics = dict(metrics)
             metrics.update({
                 "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from hprior_jax.buffers import replay
+from hprior_jax.labelling.teacher import LabellingStopped
 from hprior_jax.loop import devices
 from hprior_jax.loop.engine import Engine
 from hprior_jax.loop.run_dir import legacy_checkpoint_name
@@ -30,16 +31,19 @@ class TrainingDiverged(RuntimeError):
 
 
 class Interrupted(Exception):
-    """The user pressed Ctrl-C: the chunk in flight finished and a checkpoint was written."""
+    """The user pressed Ctrl-C (the chunk in flight finished), or a person's round stopped
+    waiting for answers: a checkpoint of step `step` is in the run directory."""
 
-    def __init__(self, run_dir: Path, step: int):
-        super().__init__(f"interrupted at step {step}; checkpoint saved in {run_dir}")
+    def __init__(self, run_dir: Path, step: int, why: str = ""):
+        super().__init__(f"interrupted at step {step}{': ' + why if why else ''}; "
+                         f"checkpoint saved in {run_dir}")
         self.run_dir, self.step = run_dir, step
 
 
 def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         max_chunks: int | None = None, saved_capacity: int | None = None,
-        engine: Engine | None = None, interrupt: "StopRequest | None" = None) -> RunState:
+        engine: Engine | None = None, interrupt: "StopRequest | None" = None,
+        labelling=None) -> RunState:
     """Trains `cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to resume).
 
     `max_chunks` stops early after that many chunks (used by tests to simulate an
@@ -48,6 +52,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     already built for `cfg` (the CLI builds it before writing anything, so configuration
     errors leave no run directory behind). `interrupt`: a `StopRequest` shared by runs that
     train side by side in threads (the grid's), which the main thread's Ctrl-C sets.
+    `labelling`: where and how long a method that asks a person waits for answers
+    (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
@@ -85,12 +91,17 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     events = set(engine.event_steps())
     own_interrupt = interrupt is None
     interrupt = interrupt or StopRequest()
+    engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
     try:
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
             timer = _WallTimer(engine.compile_seconds)  # wall time per part, compiles apart
             if step in events:  # e.g. a feedback round: before this step's update
-                with timer("event_s"):
+                if engine.method.asks_person and last_ckpt != step:
+                    # a person may stop the run while the round waits: it resumes from here
+                    ckpt.save(step, rs)
+                    last_ckpt = step
+                with timer("event_s"), _stopped_waiting(run_dir, step):
                     rs, event_metrics = engine.run_event(rs, step)
                     event_metrics = devices.fetch(event_metrics)
                 _finite_or_raise(event_metrics, step, step, seeds, run_dir, last_ckpt)
@@ -136,6 +147,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     finally:
         if own_interrupt:
             interrupt.restore()
+        if engine.person is not None:
+            engine.person.close()
         bar.close()
         log.close()
         ckpt.close()
@@ -143,6 +156,29 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         plot_learning_curve(run_dir / "eval.csv", run_dir / "learning_curve.png",
                             title=f"{cfg.algo} on {cfg.task}")
     return rs
+
+
+def _person(engine: Engine, run_dir: Path, options, interrupt: "StopRequest", bar):
+    """The human teacher a method that asks a person gets (`kit.person`), or None."""
+    if not engine.method.asks_person:
+        return None
+    from hprior_jax.labelling.teacher import AskOptions, HumanTeacher
+
+    if jax.process_count() > 1:
+        raise ValueError("--teacher human runs in one process (one labelling page)")
+    return HumanTeacher(run_dir / "labels", engine.task, engine.cfg.seeds,
+                        options or AskOptions(), should_stop=lambda: interrupt.requested,
+                        say=bar.write)
+
+
+@contextlib.contextmanager
+def _stopped_waiting(run_dir: Path, step: int):
+    """A person's round that stops waiting (Ctrl-C, timeout) stops the run: the checkpoint
+    before the round is its resume point."""
+    try:
+        yield
+    except LabellingStopped as e:
+        raise Interrupted(run_dir, step, str(e)) from None
 
 
 def restore_latest(ckpt, like: RunState, step: int | None = None):

@@ -50,6 +50,11 @@ class Kit(Protocol):
         """`fn` of one seed as one jitted program over every seed (split over the devices):
         `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share."""
 
+    def place(self, tree):
+        """Host arrays with a leading seed axis, split over the devices as programs expect."""
+
+    person: object  # the human teacher the host attached (`labelling.teacher`), or None
+
 
 def random_step(kit: Kit) -> StepFn:
     def step(rs: RunState, obs, t, keys):
@@ -78,6 +83,11 @@ def sac_step(kit: Kit, reward_fn=None) -> StepFn:
 
 class Method:
     """SAC on the true reward; other methods override the hooks they change."""
+
+    # True: a person labels (through `kit.person`): the replay buffer keeps each obs's
+    # physics state for the clips, and the host checkpoints before each event (where the
+    # person may stop the run)
+    asks_person = False
 
     def __init__(self, cfg, kit: Kit):
         self.cfg, self.kit = cfg, kit

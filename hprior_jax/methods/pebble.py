@@ -12,6 +12,11 @@ Deliberate differences from BPref, each harmless and stated here: BPref skips th
 update at exactly step `seed` and at step `seed+unsup` (its if/elif chain); we update there
 too (2 extra updates in a run). The teacher reads true rewards from the replay buffer's
 `true_reward` column; nothing that trains (SAC, the reward ensemble) ever reads it.
+
+With `--teacher human` a round is two programs with a person between them: `human_queries`
+proposes the pairs (the same draws as the scripted round) and returns what their clips need,
+the host asks the person (`kit.person`), and `human_learn` stores the answers and trains on
+them exactly as the scripted round trains on its teacher's labels.
 """
 from __future__ import annotations
 
@@ -35,11 +40,12 @@ from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.loop.state import RunState
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.preference import PreferenceConfig, RewardTerm, make_optimizer, train_reward
-from hprior_jax.pbrl.query import select_queries
+from hprior_jax.pbrl.query import SegmentPairs, cut_segments, select_queries
 from hprior_jax.pbrl.relabel import relabel_rewards
 from hprior_jax.pbrl.state_entropy import (RunningMeanStd, init_running_mean_std,
                                            state_entropy_reward)
-from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
+from hprior_jax.pbrl.teacher import (TeacherConfig, TeacherOutput, TeacherThresholds,
+                                     compute_thresholds, teacher_labels)
 
 UNSUP = "unsup"
 RETURN_WINDOW = 10  # BPref: teacher thresholds from the mean return of the last 10 episodes
@@ -109,12 +115,14 @@ class PebbleState:
 
 class EpisodeWindow(NamedTuple):
     """The episodes queries are drawn from: obs[N, L, ds], act[N, L, da], true_reward[N, L]
-    (teacher only), and `count` valid rows (rows 0..count-1)."""
+    (teacher only), and `count` valid rows (rows 0..count-1); `physics` {field: [N, L, ...]}
+    where the replay buffer records it (a person's clips)."""
 
     obs: jax.Array
     act: jax.Array
     true_reward: jax.Array
     count: jax.Array
+    physics: dict | None = None
 
 
 class Extension:
@@ -178,11 +186,18 @@ class Pebble(Method):
         self.pref_cfg = PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
                                          lr=p.reward_lr)
         self.reward_tx = make_optimizer(self.pref_cfg)
+        # a person's labels: the replay buffer keeps the physics state the clips are drawn from
+        self.asks_person = p.teacher.human
 
     @property
     def stored_segment_len(self) -> int:
         """Steps of a stored (queried) segment: the teacher's H, longer for SURF's crops."""
         return self.pcfg.segment_len
+
+    @property
+    def judged_steps(self) -> slice:
+        """The steps of a stored segment the teacher judges (and a person sees)."""
+        return slice(0, self.stored_segment_len)
 
     # -- schedule --------------------------------------------------------------------------
     @property
@@ -239,12 +254,20 @@ class Pebble(Method):
                        queries: int):
         """Query -> teacher -> reward update -> relabel (and, after the first round, the
         critic reset and `reset_update` SAC steps). Returns (rs, scalar metrics)."""
+        pairs, thresholds = self.propose(rs, num_queries, first=first, queries=queries)
+        out = teacher_labels(_round_keys(rs).teacher, *self.teacher_rewards(pairs),
+                             self.pcfg.teacher, thresholds)
+        return self.learn(rs, pairs, out, num_queries, first=first)
+
+    def propose(self, rs: RunState, num_queries: jax.Array, *, first: bool, queries: int
+                ) -> tuple[SegmentPairs, TeacherThresholds]:
+        """This round's pairs (`queries` static, the first `num_queries` inside the budget)
+        and the scripted teacher's skip/equal thresholds."""
         p, L = self.pcfg, self.kit.env.episode_length
-        buf, ms = rs.replay, rs.method
-        key, k_query, k_teacher, k_reward, k_reset = jax.random.split(rs.key, 5)
-        window = self.recent_episodes(buf)
-        pairs = select_queries(k_query, ms.reward, window.obs, window.act, window.true_reward,
-                               window.count, rule="uniform" if first else p.feed_type,
+        window = self.recent_episodes(rs.replay)
+        pairs = select_queries(_round_keys(rs).query, rs.method.reward, window.obs, window.act,
+                               window.true_reward, window.count,
+                               rule="uniform" if first else p.feed_type,
                                mb_size=queries, segment_len=self.stored_segment_len,
                                large_batch=p.large_batch, num_queries=num_queries,
                                reward_cfg=self.reward_cfg)
@@ -252,22 +275,29 @@ class Pebble(Method):
         n = window.true_reward.shape[0]
         recent = (jnp.arange(n) < window.count) & (jnp.arange(n) >= window.count - RETURN_WINDOW)
         mean_return = jnp.sum(returns * recent) / jnp.maximum(recent.sum(), 1)
-        thresholds = compute_thresholds(p.teacher, mean_return, p.segment_len, L,
-                                        first_round=first)
-        out = teacher_labels(k_teacher, *self.teacher_rewards(pairs), p.teacher, thresholds)
+        return pairs, compute_thresholds(p.teacher, mean_return, p.segment_len, L,
+                                         first_round=first)
+
+    def learn(self, rs: RunState, pairs: SegmentPairs, out: TeacherOutput,
+              num_queries: jax.Array, *, first: bool):
+        """Store the round's labels, update the reward model, relabel the buffer (and after
+        the first round reset the critic). Returns (rs, scalar metrics)."""
+        buf, ms = rs.replay, rs.method
+        keys = _round_keys(rs)
+        window = self.recent_episodes(buf)
         keep = out.valid & pairs.mask
         prefs = preferences.add(ms.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
         # a stream folded off the query key: PEBBLE's own draws stay what they were
         ms = self.after_labels(ms.replace(prefs=prefs), window, num_queries,
-                               jax.random.fold_in(k_query, 1))
-        ms, rmetrics = self._train_reward(rs, ms, k_reward)
+                               jax.random.fold_in(keys.query, 1))
+        ms, rmetrics = self._train_reward(rs, ms, keys.reward)
         reward = relabel_rewards(ms.reward, buf.obs, buf.action, buf.reward, buf.size,
                                  reward_cfg=self.reward_cfg)
         buf = buf.replace(reward=reward)
-        rs = rs.replace(replay=buf, method=ms, key=key)
+        rs = rs.replace(replay=buf, method=ms, key=keys.next)
         if first:
-            rs = rs.replace(sac=self._reset_critic_and_update(rs, k_reset))
+            rs = rs.replace(sac=self._reset_critic_and_update(rs, keys.reset))
         metrics = {
             "feedback/queries": num_queries.astype(jnp.float32),
             "feedback/labeled": jnp.sum(keep).astype(jnp.float32),
@@ -280,6 +310,35 @@ class Pebble(Method):
         }
         return rs, metrics
 
+    def human_queries(self, rs: RunState, num_queries: jax.Array, *, first: bool,
+                      queries: int) -> tuple[SegmentPairs, dict]:
+        """A person's round, first half: the pairs `propose` draws, and what a person is
+        shown of them: the judged steps' physics states ("physics1"/"physics2": {field:
+        [Q, H, ...]}) and true rewards ("true_reward1"/"true_reward2" [Q, H], kept beside
+        the answers to tell later how a person's labels differ from the true reward's)."""
+        pairs, _ = self.propose(rs, num_queries, first=first, queries=queries)
+        window = self.recent_episodes(rs.replay)
+        judged = self.judged_steps
+        o = pairs.origin
+        cut = lambda x, side: cut_segments(x, o[:, 2 * side - 2], o[:, 2 * side - 1],
+                                           self.stored_segment_len)[:, judged]
+        r1, r2 = self.teacher_rewards(pairs)
+        shown = {"physics1": jax.tree.map(lambda x: cut(x, 1), window.physics),
+                 "physics2": jax.tree.map(lambda x: cut(x, 2), window.physics),
+                 "true_reward1": r1, "true_reward2": r2}
+        return pairs, shown
+
+    def human_learn(self, rs: RunState, pairs: SegmentPairs, labels: jax.Array,
+                    valid: jax.Array, num_queries: jax.Array, *, first: bool):
+        """A person's round, second half: B-Pref labels [Q] (0 left, 1 right, -1 equal) and
+        `valid` (False: skipped) -> `learn`. Its "mistakes" count the answers that disagree
+        with the true reward's order (the oracle's label)."""
+        oracle = teacher_labels(_round_keys(rs).teacher, *self.teacher_rewards(pairs))
+        equal = labels == -1
+        out = TeacherOutput(labels=labels, valid=valid, equal=equal,
+                            mistake=(labels != oracle.labels) & ~equal)
+        return self.learn(rs, pairs, out, num_queries, first=first)
+
     def recent_episodes(self, buf) -> EpisodeWindow:
         """The last `trajectory_episodes` complete episodes, straight from the replay buffer
         (which holds whole episodes in order from row 0)."""
@@ -291,11 +350,12 @@ class Pebble(Method):
         episodes = lambda x: jax.lax.dynamic_slice_in_dim(
             x.reshape((n_stored, L) + x.shape[1:]), start, window, axis=0)
         return EpisodeWindow(episodes(buf.obs), episodes(buf.action), episodes(buf.true_reward),
-                             jnp.minimum(n_episodes, window))
+                             jnp.minimum(n_episodes, window),
+                             jax.tree.map(episodes, buf.physics))
 
     def teacher_rewards(self, pairs) -> tuple[jax.Array, jax.Array]:
         """The true per-step rewards the teacher judges each segment of a pair by."""
-        return pairs.true_r1, pairs.true_r2
+        return pairs.true_r1[:, self.judged_steps], pairs.true_r2[:, self.judged_steps]
 
     def after_labels(self, ms: PebbleState, window: EpisodeWindow, num_queries: jax.Array,
                      key: jax.Array) -> PebbleState:
@@ -339,14 +399,48 @@ class Pebble(Method):
         rounds = dict(self.rounds())
         if step in rounds:
             first = step == self.first_round_step
-            fn = self.kit.per_seed(partial(self.feedback_round, first=first,
-                                           queries=self.pcfg.queries_per_round),
-                                   (0, None), donate_argnums=0)
             n = np.int32(rounds[step])
-            name = "feedback_round/first" if first else "feedback_round"
-            rs, round_metrics = self.kit.compile(name, fn, rs, n)(rs, n)
+            if self.asks_person:
+                rs, round_metrics = self._human_round(rs, step, n, first)
+            else:
+                fn = self.kit.per_seed(partial(self.feedback_round, first=first,
+                                               queries=self.pcfg.queries_per_round),
+                                       (0, None), donate_argnums=0)
+                name = "feedback_round/first" if first else "feedback_round"
+                rs, round_metrics = self.kit.compile(name, fn, rs, n)(rs, n)
             metrics = {**metrics, **round_metrics}
         return rs, metrics
+
+    def _human_round(self, rs: RunState, step: int, n: np.int32, first: bool):
+        """Propose (compiled), ask the person (host, may wait for hours or stop the run),
+        learn from the answers (compiled)."""
+        from hprior_jax.loop.devices import fetch
+
+        suffix = "/first" if first else ""
+        propose = self.kit.per_seed(partial(self.human_queries, first=first,
+                                            queries=self.pcfg.queries_per_round), (0, None))
+        pairs, shown = self.kit.compile(f"human_queries{suffix}", propose, rs, n)(rs, n)
+        number = [s for s, _ in self.rounds()].index(step) + 1
+        labels, valid = self.kit.person.ask(number, step, fetch(shown), int(n))
+        labels, valid = self.kit.place(labels), self.kit.place(valid)
+        learn = self.kit.per_seed(partial(self.human_learn, first=first),
+                                  (0, 0, 0, 0, None), donate_argnums=0)
+        args = (rs, pairs, labels, valid, n)
+        return self.kit.compile(f"human_learn{suffix}", learn, *args)(*args)
+
+
+class RoundKeys(NamedTuple):
+    next: jax.Array  # the run's key after the round
+    query: jax.Array
+    teacher: jax.Array
+    reward: jax.Array
+    reset: jax.Array
+
+
+def _round_keys(rs: RunState) -> RoundKeys:
+    """A round's streams, split off the run key it starts with (so both halves of a person's
+    round, and the scripted round, draw the same)."""
+    return RoundKeys(*jax.random.split(rs.key, 5))
 
 
 def reward_config(p: PebbleConfig) -> RewardConfig:

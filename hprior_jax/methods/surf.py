@@ -97,10 +97,11 @@ class Surf(Pebble):
                                 capacity=max(self.pool_capacity, 1))
         return ms.replace(ext=SurfState(pool=pool))
 
-    def teacher_rewards(self, pairs):
+    @property
+    def judged_steps(self) -> slice:
+        """The teacher judges (and a person sees) the middle H steps of the stored H + 2w."""
         w = self.scfg.window
-        mid = slice(w, self.stored_segment_len - w)
-        return pairs.true_r1[:, mid], pairs.true_r2[:, mid]
+        return slice(w, self.stored_segment_len - w)
 
     def after_labels(self, ms: PebbleState, window: EpisodeWindow, num_queries, key):
         """This round's unlabelled pairs: `inv_label_ratio` x the round's queries, uniform."""

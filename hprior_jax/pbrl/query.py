@@ -31,7 +31,9 @@ RULES = ("uniform", "disagreement", "entropy")
 class SegmentPairs:
     """B candidate pairs: obs*[B, H, ds], act*[B, H, da], true_r*[B, H] (teacher only).
 
-    `mask` [B] is True for pairs inside this round's feedback budget (see `select_queries`)."""
+    `mask` [B] is True for pairs inside this round's feedback budget (see `select_queries`).
+    `origin` int32[B, 4]: (episode, start) of segment 1, then of segment 2, in the store (to
+    fetch what else the store keeps of them: the physics states a person's clips show)."""
 
     obs1: jax.Array
     act1: jax.Array
@@ -40,6 +42,7 @@ class SegmentPairs:
     act2: jax.Array
     true_r2: jax.Array
     mask: jax.Array
+    origin: jax.Array | None = None
 
 
 def sample_segment_pairs(key: jax.Array, obs: jax.Array, act: jax.Array, true_reward: jax.Array,
@@ -57,14 +60,18 @@ def sample_segment_pairs(key: jax.Array, obs: jax.Array, act: jax.Array, true_re
     ep2 = jax.random.randint(k_e2, (num_pairs,), 0, n_valid)
     st1 = jax.random.randint(k_s1, (num_pairs,), 0, n_starts)
     st2 = jax.random.randint(k_s2, (num_pairs,), 0, n_starts)
-    t = jnp.arange(segment_len)
-
-    def cut(x, ep, st):  # x[N, L, ...] -> [B, H, ...]
-        return x[ep[:, None], st[:, None] + t[None, :]]
+    cut = lambda x, ep, st: cut_segments(x, ep, st, segment_len)
 
     return SegmentPairs(obs1=cut(obs, ep1, st1), act1=cut(act, ep1, st1), true_r1=cut(true_reward, ep1, st1),
                         obs2=cut(obs, ep2, st2), act2=cut(act, ep2, st2), true_r2=cut(true_reward, ep2, st2),
-                        mask=jnp.ones((num_pairs,), bool))
+                        mask=jnp.ones((num_pairs,), bool),
+                        origin=jnp.stack([ep1, st1, ep2, st2], axis=-1).astype(jnp.int32))
+
+
+def cut_segments(x: jax.Array, episodes: jax.Array, starts: jax.Array, segment_len: int):
+    """x[N, L, ...] -> [B, H, ...]: the segments of `segment_len` steps at (episode, start)."""
+    t = jnp.arange(segment_len)
+    return x[episodes[:, None], starts[:, None] + t[None, :]]
 
 
 def disagreement_scores(params: Params, pairs: SegmentPairs,

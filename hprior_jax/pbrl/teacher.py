@@ -35,6 +35,10 @@ class TeacherConfig:
     # the caller passes margin*eps and the setter multiplies by eps again, so the thresholds are
     # eps^2 * margin. Not copied by default; True reproduces it.
     bpref_squared_eps: bool = False
+    # A person answers instead (`--teacher human`, `hprior_jax.labelling.teacher`): the knobs
+    # above are unused; the person's "can't tell" and "equally good" are B-Pref's skip and
+    # equal labels.
+    human: bool = False
 
     @property
     def deterministic(self) -> bool:
@@ -48,8 +52,9 @@ MISTAKE = TeacherConfig(eps_mistake=0.1)
 SKIP = TeacherConfig(eps_skip=0.1)
 MYOPIC = TeacherConfig(gamma=0.9)
 EQUAL = TeacherConfig(eps_equal=0.1)
+HUMAN = TeacherConfig(human=True)
 PRESETS = {"oracle": ORACLE, "noisy": NOISY, "stoch": NOISY, "mistake": MISTAKE,
-           "skip": SKIP, "myopic": MYOPIC, "equal": EQUAL}
+           "skip": SKIP, "myopic": MYOPIC, "equal": EQUAL, "human": HUMAN}
 
 
 @flax.struct.dataclass
