@@ -256,9 +256,15 @@ def _label(argv: list[str]) -> int:
     parser.add_argument("--from-run", default=None,
                         help="first write queries into --dir: segment pairs from fresh "
                              "episodes of this run's policy")
+    parser.add_argument("--from-lab", default=None, metavar="DATASET",
+                        help="first write queries into --dir: uniform segment pairs of a "
+                             "reward-lab dataset built with --physics (then train the lab on "
+                             "the answers: `hprior reward-lab --labels DIR`)")
     parser.add_argument("--pairs", type=int, default=10)
-    parser.add_argument("--segment-len", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=None, help="which seed's policy")
+    parser.add_argument("--segment-len", type=int, default=50,
+                        help="with --from-run (a lab dataset's segments have its own length)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="which seed's policy (--from-run); the draw of pairs (--from-lab)")
     parser.add_argument("--build-only", action="store_true", help="write the queries, stop")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to serve on; any other than loopback needs a token")
@@ -268,15 +274,23 @@ def _label(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     from hprior_jax.labelling.store import QueryFolder
 
-    if args.from_run:
-        from hprior_jax.labelling.from_run import queries_from_run
+    if args.from_run and args.from_lab:
+        parser.error("give --from-run or --from-lab, not both")
+    if args.from_run or args.from_lab:
         from hprior_jax.loop.run_dir import check_out_dir
-        from hprior_jax.setup_jax import enable_compilation_cache
 
         check_out_dir(Path(args.dir))
-        enable_compilation_cache()
-        ids = queries_from_run(args.from_run, args.dir, args.pairs, args.segment_len,
-                               args.seed)
+        if args.from_run:
+            from hprior_jax.labelling.from_run import queries_from_run
+            from hprior_jax.setup_jax import enable_compilation_cache
+
+            enable_compilation_cache()
+            ids = queries_from_run(args.from_run, args.dir, args.pairs, args.segment_len,
+                                   args.seed)
+        else:
+            from hprior_jax.labelling.from_lab import queries_from_lab
+
+            ids = queries_from_lab(args.from_lab, args.dir, args.pairs, args.seed or 0)
         print(f"wrote {len(ids)} queries to {args.dir}", flush=True)
         if args.build_only:
             return 0
@@ -416,6 +430,13 @@ def _reward_lab(argv: list[str]) -> int:
                              f"{registry.REFERENCE}` run's replay buffer instead of a new run "
                              "(cached under the run's seed, steps and preset)")
     parser.add_argument("--dataset-only", action="store_true", help="build the dataset, stop")
+    parser.add_argument("--physics", action="store_true",
+                        help="the dataset also keeps the physics state of every training step "
+                             "(a person can label its pairs: `hprior label --from-lab`)")
+    parser.add_argument("--labels", default=None, metavar="DIR",
+                        help="train every rule once on a person's answers in this query folder "
+                             "(`hprior label --from-lab`) instead of the teacher's labels; "
+                             "the dataset is the one the folder names")
     parser.add_argument("--rules", nargs="+", default=None,
                         help=f"default: all ({' '.join(rules())})")
     parser.add_argument("--seeds", type=int, default=20)
@@ -434,7 +455,19 @@ def _reward_lab(argv: list[str]) -> int:
     from hprior_jax.setup_jax import enable_compilation_cache
 
     enable_compilation_cache()
-    if args.dataset_from_run:
+    given = None
+    if args.labels:
+        from hprior_jax.labelling.from_lab import given_labels
+
+        path, given, unanswered = given_labels(Path(args.labels))
+        data = datasets.Dataset.load(path)
+        if data.task != args.task:
+            parser.error(f"--labels {args.labels} are of {data.task}, not --task {args.task}")
+        if unanswered:
+            print(f"{unanswered} queries of {args.labels} are not answered: training on the "
+                  f"{len(given)} that are", file=sys.stderr)
+        args.budgets, args.one_shot = [len(given)], True
+    elif args.dataset_from_run:
         data = datasets.from_run(args.dataset_from_run, args.dataset_seed)
         if data.task != args.task:
             parser.error(f"--dataset-from-run {args.dataset_from_run} is a {data.task} run, "
@@ -444,7 +477,8 @@ def _reward_lab(argv: list[str]) -> int:
                                                info["preset"]))
     else:
         data, path = datasets.load_or_build(args.task, args.dataset_seed or 0,
-                                            args.dataset_steps, args.preset)
+                                            args.dataset_steps, args.preset,
+                                            physics=args.physics)
     print(f"dataset {path}: {data.info}", flush=True)
     if args.dataset_only:
         return 0
@@ -454,7 +488,7 @@ def _reward_lab(argv: list[str]) -> int:
     cfg = lab_config(data, args.preset, args.rules, args.seeds, args.budgets,
                      args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam)
     out = args.out or f"runs/reward_lab/{args.task}"
-    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True))
+    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given)
     print(f"{info['wall_seconds']} s, peak RSS {info['peak_rss_gib']} GiB; report in {out}")
     return 0
 

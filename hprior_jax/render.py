@@ -7,12 +7,18 @@ mujoco's renderer here, on first use."""
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from tasks.base import RENDER_FIELDS as FIELDS  # what positions a frame
+
+# The MP4 encoder is an ffmpeg child process (fork, then exec at once), which JAX's warning
+# about forking a multithreaded process does not concern (a filter, not a context manager:
+# clips are written from a background thread while a run waits for labels).
+warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
 
 
 def _install_gl_context() -> None:
@@ -82,6 +88,6 @@ def write_video(frames: np.ndarray, path: Path, fps: float) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix == ".gif":
         iio.imwrite(path, frames, duration=1000 / fps, loop=0)
-    else:
-        iio.imwrite(path, frames, fps=fps, codec="libx264", macro_block_size=8)
+        return path
+    iio.imwrite(path, frames, fps=fps, codec="libx264", macro_block_size=8)
     return path

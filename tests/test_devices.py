@@ -5,7 +5,6 @@ import csv
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 
 from tests.device_runs import GRID_SEEDS, GRID_TASKS, STOP_AFTER_CHUNKS, grid_overrides
+from tests.ports import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -94,7 +94,8 @@ def cut_on_four(tmp_path_factory):
     return cut
 
 
-@pytest.mark.parametrize("devices", [2, 1])
+# CI time: resuming on 2 devices (40 s here) is a slow test; on 1 device stays
+@pytest.mark.parametrize("devices", [pytest.param(2, marks=pytest.mark.slow), 1])
 def test_a_checkpoint_of_four_devices_resumes_on_fewer(runs, cut_on_four, tmp_path, devices):
     run = tmp_path / "run"
     shutil.copytree(cut_on_four, run)
@@ -110,16 +111,11 @@ def test_a_seed_count_the_devices_cannot_split_is_refused_by_name(tmp_path):
     assert done.returncode == 2 and "this process sees 4 device(s)" in done.stderr
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
+@pytest.mark.slow  # CI time: 55 s here (two processes, each compiling the run)
 def test_two_processes_write_one_run_directory_equal_to_one_process(runs, tmp_path):
     """Two processes of 2 CPU devices each (localhost `jax.distributed`), the command every
     host runs: one run directory, the same numbers as the single-process run."""
-    out, port = tmp_path / "two_hosts", _free_port()
+    out, port = tmp_path / "two_hosts", free_port()
     procs = [subprocess.Popen(
         [sys.executable, "-m", "tests.device_runs", "full", str(out), "4"],
         env=_env(2, JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2",

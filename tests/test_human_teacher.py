@@ -2,7 +2,6 @@
 trains on the answers; answered as the oracle would, it is the oracle's run."""
 import dataclasses
 import json
-import socket
 import threading
 import time
 
@@ -16,6 +15,7 @@ from hprior_jax.labelling.teacher import AskOptions
 from hprior_jax.loop import host
 from hprior_jax.loop.engine import Engine
 from hprior_jax.loop.run_dir import prepare_run_dir
+from tests.ports import free_port
 from tests.test_pebble_loop import SMALL
 
 # two rounds of 10 queries per seed (steps 40 and 80), two seeds
@@ -26,12 +26,6 @@ def _cfg(tmp_path, name, teacher):
     cfg = presets.train_preset("toy_point", "pebble", "smoke", out=str(tmp_path / name), **RUN)
     cfg = dataclasses.replace(cfg, pebble=dataclasses.replace(cfg.pebble, max_feedback=20))
     return presets.with_teacher(cfg, teacher)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Answerer(threading.Thread):
@@ -104,7 +98,7 @@ def test_a_person_answering_as_the_oracle_trains_the_oracles_run(tmp_path):
 
     human = _cfg(tmp_path, "human", "human")
     run_dir = tmp_path / "human"
-    port = _free_port()
+    port = free_port()
     assert Engine(human).method.asks_person
     # nobody answers: after the timeout the run stops at the first round, checkpointed there
     with pytest.raises(host.Interrupted, match="no answer for 1 s") as stopped:

@@ -3,8 +3,6 @@
 sees both clips play, answers with a click and with a key, reloads and finds its progress.
 The screenshot lands in benchmarks/results/labelling_page.png."""
 import shutil
-import socket
-import threading
 import time
 from pathlib import Path
 
@@ -18,22 +16,11 @@ SCREENSHOT = Path(__file__).resolve().parent.parent / "benchmarks" / "results" /
 
 @pytest.fixture()
 def server(folder):  # noqa: F811
-    import uvicorn
+    from hprior_jax.labelling.server import BackgroundServer, ServerOptions
 
-    from hprior_jax.labelling.app import make_app
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    srv = uvicorn.Server(uvicorn.Config(make_app(folder), host="127.0.0.1", port=port,
-                                        log_level="warning"))
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    while not srv.started:
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}/", folder
-    srv.should_exit = True
-    thread.join(10)
+    srv = BackgroundServer(folder, ServerOptions(port=0))
+    yield srv.url, folder
+    srv.close()
 
 
 @pytest.fixture()

@@ -6,7 +6,9 @@ first, then a policy that improves episode by episode, which is the kind of data
 queries are drawn from in the RL loop. Every `heldout_every`-th episode is held out, so both
 sets span the whole learning curve. From the held-out episodes it draws fixed segment pairs
 labelled by the oracle (pairs with equal true returns are not kept: they have no answer).
-Deterministic from (task, seed, steps, preset): the file name says all four.
+Deterministic from (task, seed, steps, preset): the file name says all four. Built with
+`physics=True`, it also keeps the physics state of every training step (a person can then
+label clips of its segments: `hprior label --from-lab`), under a name of its own.
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ class Dataset:
     pair_index: np.ndarray  # [P, 4] int: episode 1, start 1, episode 2, start 2
     pair_label: np.ndarray  # [P] int32
     info: dict  # how it was made: seed, steps, preset, build seconds, returns
+    train_physics: dict | None = None  # {field: [E, L, ...]} the state behind train_obs
 
     @property
     def episode_length(self) -> int:
@@ -54,6 +57,7 @@ class Dataset:
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                   if isinstance(getattr(self, f.name), np.ndarray)}
+        arrays |= {f"{PHYSICS}{k}": v for k, v in (self.train_physics or {}).items()}
         meta = dict(task=self.task, segment_len=self.segment_len, info=self.info)
         tmp = path.with_suffix(".tmp.npz")
         np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)), **arrays)
@@ -64,9 +68,10 @@ class Dataset:
     def load(path: Path) -> "Dataset":
         with np.load(path) as z:
             meta = json.loads(str(z["meta"]))
-            arrays = {k: z[k] for k in z.files if k != "meta"}
+            arrays = {k: z[k] for k in z.files if k != "meta" and not k.startswith(PHYSICS)}
+            physics = {k[len(PHYSICS):]: z[k] for k in z.files if k.startswith(PHYSICS)}
         return Dataset(task=meta["task"], segment_len=meta["segment_len"], info=meta["info"],
-                       **arrays)
+                       train_physics=physics or None, **arrays)
 
 
 def cache_dir() -> Path:
@@ -74,17 +79,26 @@ def cache_dir() -> Path:
     return Path(os.environ.get("HPRIOR_LAB_CACHE", Path.home() / ".cache/hprior_jax/lab"))
 
 
-def dataset_path(task: str, seed: int, steps: int, preset: str) -> Path:
-    return cache_dir() / f"{task}_sac-{preset}_{steps}steps_seed{seed}.npz"
+PHYSICS = "train_physics."  # the saved name of a physics field of the training episodes
+
+
+def dataset_path(task: str, seed: int, steps: int, preset: str, physics: bool = False) -> Path:
+    return cache_dir() / (f"{task}_sac-{preset}_{steps}steps_seed{seed}"
+                          + ("_physics" if physics else "") + ".npz")
 
 
 def split_episodes(obs, act, reward, episode_length: int, heldout_every: int = 3):
     """Replay rows (one env, never wrapped) -> (train, held-out) episode arrays; episode e
     is held out when e % heldout_every == heldout_every - 1."""
-    n = reward.shape[0] // episode_length
-    ep = lambda x: x[: n * episode_length].reshape((n, episode_length) + x.shape[1:])
+    return [split_column(x, episode_length, heldout_every) for x in (obs, act, reward)]
+
+
+def split_column(x, episode_length: int, heldout_every: int = 3):
+    """One replay column's rows -> (train, held-out) episodes [E, L, ...] (split_episodes)."""
+    n = x.shape[0] // episode_length
+    ep = x[: n * episode_length].reshape((n, episode_length) + x.shape[1:])
     held = np.arange(n) % heldout_every == heldout_every - 1
-    return [(ep(x)[~held], ep(x)[held]) for x in (obs, act, reward)]
+    return ep[~held], ep[held]
 
 
 def heldout_pairs(reward: np.ndarray, segment_len: int, num_pairs: int,
@@ -111,12 +125,14 @@ def heldout_pairs(reward: np.ndarray, segment_len: int, num_pairs: int,
 
 def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "reduced",
           heldout_every: int = 3, num_pairs: int = HELDOUT_PAIRS,
-          progress: bool = True) -> Dataset:
+          progress: bool = True, physics: bool = False) -> Dataset:
     """Trains SAC on the true reward (the `preset`'s networks, one seed) and turns its replay
     buffer into a Dataset with the preset's query segment length. Takes minutes: one SAC run
-    of `steps` steps."""
+    of `steps` steps. `physics`: keep the training steps' physics states too (the same
+    run: recording them changes no number)."""
     from hprior_jax import presets
     from hprior_jax.loop import host
+    from hprior_jax.loop.engine import Engine
     from hprior_jax.methods import registry
 
     length = task_info(task).episode_length
@@ -125,7 +141,9 @@ def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "r
     cfg = presets.train_preset(task, registry.REFERENCE, preset, steps=steps, seeds=(seed,),
                                eval_every=steps, checkpoint_every=steps)
     with tempfile.TemporaryDirectory() as tmp:
-        rs = host.run(dataclasses.replace(cfg, out=tmp), Path(tmp), progress=progress)
+        cfg = dataclasses.replace(cfg, out=tmp)
+        rs = host.run(cfg, Path(tmp), progress=progress,
+                      engine=Engine(cfg, records_physics=physics))
     replay = jax.tree.map(lambda x: np.asarray(x)[0], rs.replay)
     return _from_replay(task, replay, steps, seed, preset, f"SAC ({preset}) replay buffer",
                         t0, heldout_every, num_pairs)
@@ -173,6 +191,10 @@ def _from_replay(task: str, replay, steps: int, seed: int, preset: str, source: 
     rows = lambda x: np.asarray(x)[:steps]
     (tr_o, te_o), (tr_a, te_a), (tr_r, te_r) = split_episodes(
         rows(replay.obs), rows(replay.action), rows(replay.true_reward), length, heldout_every)
+    physics = None
+    if replay.physics is not None:
+        physics = {k: split_column(rows(v), length, heldout_every)[0]
+                   for k, v in replay.physics.items()}
     index, labels = heldout_pairs(te_r, segment_len, num_pairs, np.random.default_rng(seed))
     returns = np.concatenate([tr_r, te_r]).sum(1)
     info = dict(seed=seed, steps=steps, preset=preset, source=source,
@@ -182,13 +204,13 @@ def _from_replay(task: str, replay, steps: int, seed: int, preset: str, source: 
                 episode_return_median=float(np.median(returns)))
     return Dataset(task=task, segment_len=segment_len, train_obs=tr_o, train_act=tr_a,
                    train_reward=tr_r, test_obs=te_o, test_act=te_a, test_reward=te_r,
-                   pair_index=index, pair_label=labels, info=info)
+                   pair_index=index, pair_label=labels, info=info, train_physics=physics)
 
 
 def load_or_build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "reduced",
-                  progress: bool = True) -> tuple[Dataset, Path]:
-    path = dataset_path(task, seed, steps, preset)
+                  progress: bool = True, physics: bool = False) -> tuple[Dataset, Path]:
+    path = dataset_path(task, seed, steps, preset, physics)
     if path.exists():
         return Dataset.load(path), path
-    data = build(task, seed, steps, preset, progress=progress)
+    data = build(task, seed, steps, preset, progress=progress, physics=physics)
     return data, data.save(path)

@@ -43,8 +43,9 @@ from hprior_jax.buffers import preferences
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_reward
-from hprior_jax.pbrl.query import select_queries
-from hprior_jax.pbrl.teacher import TeacherConfig, compute_thresholds, teacher_labels
+from hprior_jax.pbrl.query import pairs_at, select_queries
+from hprior_jax.pbrl.teacher import (TeacherConfig, TeacherOutput, compute_thresholds,
+                                     teacher_labels)
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
@@ -102,6 +103,21 @@ class LabConfig:
 
 
 @struct.dataclass
+class GivenLabels:
+    """Labels given beforehand instead of the teacher's (a person's: `hprior label
+    --from-lab`): pairs of the training episodes at `pair_index` [N, 4] (episode, start of
+    each segment), B-Pref labels [N] (0 first, 1 second, -1 equal) and `valid` [N] (False:
+    can't tell). Every cell trains once on all of them (one-shot)."""
+
+    pair_index: np.ndarray
+    labels: np.ndarray
+    valid: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+@struct.dataclass
 class Cell:
     """One (seed, rule): its reward ensemble and the labelled pairs with their credit."""
 
@@ -131,8 +147,15 @@ class SeedContext:
 
 
 class Lab:
-    def __init__(self, cfg: LabConfig, data: Dataset):
+    def __init__(self, cfg: LabConfig, data: Dataset, given: GivenLabels | None = None):
+        if given is not None and not (cfg.one_shot and cfg.budgets == (len(given),)):
+            raise ValueError(f"given labels train once on all {len(given)}: one_shot=True "
+                             f"and budgets=({len(given)},)")
         self.cfg, self.data = cfg, data
+        # arguments of the round program, as the data: labs of the same shapes share it
+        self.given = None if given is None else GivenLabels(
+            jnp.asarray(given.pair_index, jnp.int32), jnp.asarray(given.labels, jnp.int32),
+            jnp.asarray(given.valid, bool))
         self.obs_size = data.train_obs.shape[-1]
         self.act_size = data.train_act.shape[-1]
         self.T = data.segment_len
@@ -200,22 +223,28 @@ class Lab:
         return jnp.stack([options[c] for c in CREDITS])[credit_id]
 
     def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, num_queries, first,
-              train: Episodes, mean_return, *, queries: int, batch_size: int, feed: str):
+              train: Episodes, mean_return, given: GivenLabels | None, *, queries: int,
+              batch_size: int, feed: str):
         """Query -> teacher -> credit of the new pairs -> reward update on every stored pair.
         The first round's queries are uniform (as in BPref), later ones `feed`: both are
-        drawn and `first` (traced) picks, so every round runs one compiled program."""
+        drawn and `first` (traced) picks, so every round runs one compiled program. With
+        `given` labels (arrays), those pairs and labels replace the query and the teacher."""
         cfg = self.cfg
         key, k_query, k_teacher, k_train = jax.random.split(cell.key, 4)
-        select = lambda rule: select_queries(
-            k_query, cell.reward, train.obs, train.act, train.reward,
-            jnp.int32(train.obs.shape[0]), rule=rule, mb_size=queries, segment_len=self.T,
-            large_batch=cfg.large_batch, num_queries=num_queries, reward_cfg=cfg.reward)
-        pairs = select("uniform")
-        if feed != "uniform":
-            pairs = jax.tree.map(partial(jnp.where, first), pairs, select(feed))
-        thresholds = compute_thresholds(cfg.teacher, mean_return, self.T,
-                                        self.data.episode_length, first_round=first)
-        out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, cfg.teacher, thresholds)
+        if given is not None:
+            pairs, out = self._given(train, given)
+        else:
+            select = lambda rule: select_queries(
+                k_query, cell.reward, train.obs, train.act, train.reward,
+                jnp.int32(train.obs.shape[0]), rule=rule, mb_size=queries, segment_len=self.T,
+                large_batch=cfg.large_batch, num_queries=num_queries, reward_cfg=cfg.reward)
+            pairs = select("uniform")
+            if feed != "uniform":
+                pairs = jax.tree.map(partial(jnp.where, first), pairs, select(feed))
+            thresholds = compute_thresholds(cfg.teacher, mean_return, self.T,
+                                            self.data.episode_length, first_round=first)
+            out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, cfg.teacher,
+                                 thresholds)
         keep = out.valid & pairs.mask
         both = lambda a, b: jnp.concatenate([a, b])
         alpha = self.credit(ctx, credit_id, both(pairs.obs1, pairs.obs2),
@@ -239,6 +268,13 @@ class Lab:
                    "target_out_of_range": unreachable_targets(params, prefs, credit,
                                                               cfg.reward)}
         return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
+
+    def _given(self, train: Episodes, given: GivenLabels):
+        """The given pairs and labels as the round's queries and teacher output."""
+        pairs = pairs_at(train.obs, train.act, train.reward, given.pair_index, self.T)
+        return pairs, TeacherOutput(labels=given.labels, valid=given.valid,
+                                    equal=given.labels == -1,
+                                    mistake=jnp.zeros(given.labels.shape, bool))
 
     def predict(self, cell: Cell, test: Episodes) -> jax.Array:
         """r̂ (the ensemble mean, what the agent trains on) of every held-out state [E, L]."""
@@ -302,8 +338,8 @@ class Lab:
         feed = "uniform" if cfg.one_shot else cfg.feed_type
         rounds_fn = lambda q, b: over_cells(partial(self.round, queries=q, batch_size=b,
                                                     feed=feed),
-                                         (0, 0, None, None) + (None,) * 4,
-                                         (0, None, 0, 0) + (None,) * 4)
+                                         (0, 0, None, None) + (None,) * 5,
+                                         (0, None, 0, 0) + (None,) * 5)
         predict_fn = over_cells(self.predict, (0, None), (0, None))
         if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
             schedule = [[(b, b)] for b in cfg.budgets]
@@ -317,7 +353,7 @@ class Lab:
             rounds_labels = np.cumsum([n for n, _ in rounds])  # labels stored after each
             for i, (n, budget) in enumerate(rounds):
                 args = (cells, ctx, self.credit_index, self.lams, jnp.int32(n),
-                        jnp.asarray(i == 0), self.train, self.mean_return)
+                        jnp.asarray(i == 0), self.train, self.mean_return, self.given)
                 batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
                 fn = self._compiled(f"round/{queries}/batch{batch}", rounds_fn(queries, batch),
                                     *args, donate=0)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hprior_jax.lab.dataset import Dataset
-from hprior_jax.lab.learn import CONTROLS, Lab, LabConfig
+from hprior_jax.lab.learn import CONTROLS, GivenLabels, Lab, LabConfig
 from hprior_jax.lab.metrics import reward_quality
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -44,6 +44,10 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
     if teacher not in TEACHERS:
         raise ValueError(f"unknown teacher {teacher!r}; available: {', '.join(TEACHERS)}")
+    if TEACHERS[teacher].human:
+        raise ValueError("the lab's teacher labels as the rounds go: a person labels the "
+                         "dataset's pairs first (`hprior label --from-lab`), then "
+                         "`hprior reward-lab --labels DIR` trains on those answers")
     rl = presets.train_preset(data.task, registry.PROPOSED, preset)
     p, prior = rl.pebble, rl.prior
     if p.segment_len != data.segment_len:
@@ -83,15 +87,17 @@ def score(rows: list[dict], data: Dataset) -> list[dict]:
     return out
 
 
-def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print) -> dict:
+def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
+            given: GivenLabels | None = None) -> dict:
     """Runs the sweep; writes OUT/run_info.json (time, memory, settings) and the report
-    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs)."""
+    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs). `given`:
+    labels given beforehand (a person's) instead of the teacher's."""
     from hprior_jax.experiments.lab_report import write_report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    lab = Lab(cfg, data)
+    lab = Lab(cfg, data, given)
     rows = score(lab.run(progress), data)
     wall = time.perf_counter() - t0
     cells = len(cfg.seeds) * len(cfg.rules)

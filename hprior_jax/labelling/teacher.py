@@ -47,6 +47,8 @@ class HumanTeacher:
         self.task, self.seeds, self.options = task, list(seeds), options
         self.should_stop, self.say = should_stop, say
         self._server: BackgroundServer | None = None
+        self._renderer: threading.Thread | None = None
+        self._stop_rendering = threading.Event()
 
     @property
     def url(self) -> str:
@@ -73,6 +75,11 @@ class HumanTeacher:
         return labels, valid
 
     def close(self) -> None:
+        # the clip in progress is finished first: a GL context torn down by the interpreter's
+        # exit under a rendering thread crashes the process
+        self._stop_rendering.set()
+        if self._renderer is not None:
+            self._renderer.join(timeout=120)
         if self._server is not None:
             self._server.close()
             self._server = None
@@ -101,20 +108,28 @@ class HumanTeacher:
 
     def _render_ahead(self, ids: list[str]) -> None:
         """Clips are rendered on first request; rendering them now spares the person the
-        wait (a daemon thread: a run that goes on does not wait for it)."""
+        wait (in a thread: a run that goes on does not wait for it; it skips the queries
+        answered meanwhile and stops at `close`)."""
         if not hasattr(self.task, "mj_model"):
             return
         from hprior_jax.labelling.clips import clip_path
 
         def render():
             for qid in ids:
+                if self._stop_rendering.is_set():
+                    return
+                if qid in self.folder.answers():
+                    continue
                 try:
                     clip_path(self.folder, qid, 1)
                 except Exception as e:  # the page asks again and shows the error
                     self.say(f"rendering the clips of {qid} failed: {e}")
                     return
 
-        threading.Thread(target=render, daemon=True).start()
+        if self._renderer is not None:
+            self._renderer.join()  # the last round's, which stops at its answered queries
+        self._renderer = threading.Thread(target=render, daemon=True)
+        self._renderer.start()
 
     def _wait(self, round_: int, step: int, ids: list[str]) -> None:
         per_seed = len(ids) // max(len(self.seeds), 1)

@@ -27,9 +27,11 @@ from hprior_jax.methods import registry
 
 
 class Engine:
-    def __init__(self, cfg, devices=None):
+    def __init__(self, cfg, devices=None, records_physics: bool = False):
         """`devices`: how many devices the seeds are split over (default: as many as divide
-        the seeds evenly), or which (`hprior_jax.loop.devices.seed_mesh`)."""
+        the seeds evenly), or which (`hprior_jax.loop.devices.seed_mesh`).
+        `records_physics`: the replay buffer keeps the physics state behind each obs (what a
+        clip is rendered from), as it does anyway for a method that asks a person."""
         self.cfg = cfg
         self.mesh = seed_devices.seed_mesh(len(cfg.seeds), devices)
         options = task_options(cfg)
@@ -41,6 +43,7 @@ class Engine:
         self.compile_seconds: dict[str, float] = {}
         self.person = None  # a human teacher, attached by the host loop when one is asked
         self.method = registry.get(cfg.algo).build(cfg, self)
+        self.records_physics = records_physics or self.method.asks_person
         self.phases = self.method.phases()
         starts = [p.start for p in self.phases]
         assert starts[0] == 0 and starts == sorted(starts), "phases must start in order at 0"
@@ -82,9 +85,9 @@ class Engine:
             env=env, key=k_run, method=self.method.init(k_method))
 
     def _physics(self, env_state):
-        """The physics state behind the env's observation, where the method records it (a
-        person labels clips rendered from it); None otherwise."""
-        if not self.method.asks_person:
+        """The physics state behind the env's observation where it is recorded (a person
+        labels clips rendered from it); None otherwise."""
+        if not self.records_physics:
             return None
         return {k: v[0] for k, v in self.task.render_state(env_state.task.data).items()}
 

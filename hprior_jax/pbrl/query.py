@@ -60,12 +60,20 @@ def sample_segment_pairs(key: jax.Array, obs: jax.Array, act: jax.Array, true_re
     ep2 = jax.random.randint(k_e2, (num_pairs,), 0, n_valid)
     st1 = jax.random.randint(k_s1, (num_pairs,), 0, n_starts)
     st2 = jax.random.randint(k_s2, (num_pairs,), 0, n_starts)
-    cut = lambda x, ep, st: cut_segments(x, ep, st, segment_len)
+    return pairs_at(obs, act, true_reward, jnp.stack([ep1, st1, ep2, st2], axis=-1),
+                    segment_len)
 
-    return SegmentPairs(obs1=cut(obs, ep1, st1), act1=cut(act, ep1, st1), true_r1=cut(true_reward, ep1, st1),
-                        obs2=cut(obs, ep2, st2), act2=cut(act, ep2, st2), true_r2=cut(true_reward, ep2, st2),
-                        mask=jnp.ones((num_pairs,), bool),
-                        origin=jnp.stack([ep1, st1, ep2, st2], axis=-1).astype(jnp.int32))
+
+def pairs_at(obs: jax.Array, act: jax.Array, true_reward: jax.Array, origin: jax.Array,
+             segment_len: int) -> SegmentPairs:
+    """The pairs at `origin` int[B, 4] (episode, start of segment 1, then of segment 2) of
+    the store, all inside the budget."""
+    origin = jnp.asarray(origin, jnp.int32)
+    cut = lambda x, side: cut_segments(x, origin[:, 2 * side - 2], origin[:, 2 * side - 1],
+                                       segment_len)
+    return SegmentPairs(obs1=cut(obs, 1), act1=cut(act, 1), true_r1=cut(true_reward, 1),
+                        obs2=cut(obs, 2), act2=cut(act, 2), true_r2=cut(true_reward, 2),
+                        mask=jnp.ones((origin.shape[0],), bool), origin=origin)
 
 
 def cut_segments(x: jax.Array, episodes: jax.Array, starts: jax.Array, segment_len: int):
