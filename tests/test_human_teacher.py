@@ -22,8 +22,8 @@ from tests.test_pebble_loop import SMALL
 RUN = dict(seeds=(3, 4), steps=120, eval_every=60, checkpoint_every=60, **SMALL)
 
 
-def _cfg(tmp_path, name, teacher):
-    cfg = presets.train_preset("toy_point", "pebble", "smoke", out=str(tmp_path / name), **RUN)
+def _cfg(tmp_path, name, teacher, algo="pebble"):
+    cfg = presets.train_preset("toy_point", algo, "smoke", out=str(tmp_path / name), **RUN)
     cfg = dataclasses.replace(cfg, pebble=dataclasses.replace(cfg.pebble, max_feedback=20))
     return presets.with_teacher(cfg, teacher)
 
@@ -122,6 +122,16 @@ def test_a_person_answering_as_the_oracle_trains_the_oracles_run(tmp_path):
     _assert_same_run(tmp_path / "oracle", run_dir)
     last_round = [m for m in _metrics(run_dir) if "feedback/mistakes" in m][-1]
     assert last_round["feedback/mistakes"] == 0 and last_round["feedback/labeled"] == 10
+
+
+@pytest.mark.slow  # CI time: 50-85 s each; pebble is the fast suite's
+@pytest.mark.parametrize("algo", ["surf", "mrn", "rune", "rvar", "bisim", "prior"])
+def test_every_pebble_family_method_asks_a_person_as_its_teacher(tmp_path, algo):
+    oracle = _cfg(tmp_path, "oracle", "oracle", algo)
+    host.run(oracle, prepare_run_dir(oracle), progress=False)
+    port = free_port()
+    _train(_cfg(tmp_path, "human", "human", algo), port, Answerer(tmp_path / "human", port))
+    _assert_same_run(tmp_path / "oracle", tmp_path / "human")
 
 
 def test_a_persons_answers_become_b_pref_labels(tmp_path):
