@@ -131,3 +131,28 @@ def test_exported_reward_is_the_runs_learned_reward(toy_runs, tmp_path):
                                np.asarray(rs.replay.reward[0, :size]), rtol=2e-5, atol=2e-6)
     meta = json.loads((tmp_path / "exp" / "export.json").read_text())
     assert (meta["algo"], meta["seed"], meta["step"]) == ("pebble", 7, cfg.steps)
+
+
+def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
+    """At the start of a run the engine queues the compile of evaluation, the feedback rounds
+    and the other chunk lengths on a background thread; a run whose programs all came from
+    there is the run that compiles each when it first needs it."""
+    ahead = _cfg(tmp_path, "ahead", seeds=(7,), steps=100, eval_every=60)
+    engine = Engine(ahead)
+    rs = engine.init_seeds(ahead.seeds)
+    engine.compile_run_ahead(rs, 0)
+    # chunks: 20 random, 20 pre-training, 20 to the eval at 60, 20 to the round at 80, 20
+    assert list(engine._pending) == ["eval", "feedback_round/first", "feedback_round"]
+    for pending in engine._pending.values():
+        pending.result()
+    host.run(ahead, prepare_run_dir(ahead), progress=False, engine=engine)
+    assert {"eval", "feedback_round/first", "feedback_round"} <= set(engine.ahead_seconds)
+
+    inline = _cfg(tmp_path, "inline", seeds=(7,), steps=100, eval_every=60)
+    engine = Engine(inline)
+    engine.compile_run_ahead = lambda rs, step: None
+    host.run(inline, prepare_run_dir(inline), progress=False, engine=engine)
+    assert not engine.ahead_seconds
+    assert (tmp_path / "ahead" / "eval.csv").read_text() == (tmp_path / "inline" / "eval.csv").read_text()
+    rounds = lambda run: [r for r in _records(tmp_path / run) if "reward/true_corr" in r]
+    assert rounds("ahead") == rounds("inline") and len(rounds("ahead")) == 2

@@ -11,6 +11,7 @@ position) stay scalar. The engine holds no mutable run state and names no method
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 
 import jax
@@ -40,7 +41,10 @@ class Engine:
         self.task = self.env.task
         self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
         self._compiled: dict = {}
-        self.compile_seconds: dict[str, float] = {}
+        self.compile_seconds: dict[str, float] = {}  # the wall time a program cost the run
+        self.ahead_seconds: dict[str, float] = {}  # compile time spent ahead, in the background
+        self._ahead: ThreadPoolExecutor | None = None
+        self._pending: dict[str, Future] = {}
         self.person = None  # a human teacher, attached by the host loop when one is asked
         self.method = registry.get(cfg.algo).build(cfg, self)
         self.records_physics = records_physics or self.method.asks_person
@@ -142,7 +146,9 @@ class Engine:
 
     # -- compiled, vmapped over seeds ---------------------------------------------------------
     def compile(self, name: str, fn, *args):
-        """Compiles ahead of time so compile time is measured apart from run time.
+        """Compiles ahead of time so compile time is measured apart from run time (a program
+        already compiling in the background, `compile_ahead`, is waited for: the wait is its
+        cost to the run).
 
         Lowered from shapes and dtypes only: arrays restored from a checkpoint are committed
         to their device, and lowering from them would annotate the program with that
@@ -150,9 +156,46 @@ class Engine:
         fresh run of the same shapes hits."""
         if name not in self._compiled:
             t0 = time.perf_counter()
-            self._compiled[name] = fn.lower(*jax.tree.map(_abstract, args)).compile()
+            pending = self._pending.pop(name, None)
+            if pending is not None and not pending.cancel():
+                self._compiled[name], self.ahead_seconds[name] = pending.result()
+            else:
+                self._compiled[name] = _lower_and_compile(fn, _shapes(args))[0]
             self.compile_seconds[name] = time.perf_counter() - t0
         return self._compiled[name]
+
+    def compile_ahead(self, name: str, fn, *args) -> None:
+        """Starts compiling `fn` for `args`' shapes in a background thread, so a later
+        `compile(name, ...)` finds it ready. XLA's CPU programs run on one core here and a
+        compile on one core, so on two cores the compile of a later phase's programs costs
+        the run little wall time."""
+        if name in self._compiled or name in self._pending:
+            return
+        if self._ahead is None:
+            self._ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile-ahead")
+        self._pending[name] = self._ahead.submit(_lower_and_compile, fn, _shapes(args))
+
+    def compile_run_ahead(self, rs: RunState, step: int) -> None:
+        """Queues the background compile of every program the rest of the run will ask for
+        after its first chunk: evaluation, the method's event programs in order, the other
+        chunk lengths."""
+        lengths, at = [], step
+        while at < self.cfg.steps:
+            length = self.chunk_plan(at)[1]
+            if length not in lengths:
+                lengths.append(length)
+            at += length
+        self.compile_ahead("eval", *self._eval_program(rs, self.cfg.seeds, step))
+        for name, fn, args in self.method.programs(rs):
+            self.compile_ahead(name, fn, *args)
+        for length in lengths[1:]:
+            self.compile_ahead(f"chunk/{length}", *self._chunk_program(rs, step, length))
+
+    def close(self) -> None:
+        """Drops the background compiles not started (one in progress finishes)."""
+        if self._ahead is not None:
+            self._ahead.shutdown(wait=False, cancel_futures=True)
+            self._ahead, self._pending = None, {}
 
     def per_seed(self, fn, in_axes=(0,), donate_argnums=()):
         """`fn` of one seed as a jitted program over every seed, split over the mesh:
@@ -173,8 +216,11 @@ class Engine:
 
     def compiled_chunk(self, rs: RunState, step0: int, length: int):
         """The compiled program of `length` env steps (one per length, every phase)."""
+        return self.compile(f"chunk/{length}", *self._chunk_program(rs, step0, length))
+
+    def _chunk_program(self, rs: RunState, step0: int, length: int):
         fn = self.per_seed(partial(self.chunk, length=length), (0, None), donate_argnums=0)
-        return self.compile(f"chunk/{length}", fn, rs, np.int32(step0))
+        return fn, rs, np.int32(step0)
 
     def run_chunk(self, rs: RunState, step0: int, length: int):
         return self.compiled_chunk(rs, step0, length)(rs, np.int32(step0))
@@ -183,9 +229,13 @@ class Engine:
         return self.method.run_event(rs, step)
 
     def run_eval(self, rs: RunState, seeds, step: int):
+        fn, actor, keys = self._eval_program(rs, seeds, step)
+        return self.compile("eval", fn, actor, keys)(actor, keys)
+
+    def _eval_program(self, rs: RunState, seeds, step: int):
         keys = self.place(np.stack([np.asarray(eval_key(s, step)) for s in seeds]))
         fn = self.over_seed_axis(partial(over_seeds, self.evaluate), (0, 0))
-        return self.compile("eval", fn, rs.sac.actor, keys)(rs.sac.actor, keys)
+        return fn, rs.sac.actor, keys
 
 
 def over_seeds(fn, *args):
@@ -202,6 +252,16 @@ def eval_key(seed: int, step: int) -> jax.Array:
     """The evaluation key of `seed` at `step`: derived from (seed, step) only, so evaluation
     never touches the training stream and any tool can repeat a run's evaluation."""
     return jax.random.fold_in(jax.random.PRNGKey(seed), 0x5EED0000 + step)
+
+
+def _shapes(args):
+    return jax.tree.map(_abstract, args)
+
+
+def _lower_and_compile(fn, shapes):
+    """-> (the compiled program, its compile seconds)."""
+    t0 = time.perf_counter()
+    return fn.lower(*shapes).compile(), time.perf_counter() - t0
 
 
 def _abstract(x) -> jax.ShapeDtypeStruct:

@@ -43,7 +43,7 @@ class Interrupted(Exception):
 def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         max_chunks: int | None = None, saved_capacity: int | None = None,
         engine: Engine | None = None, interrupt: "StopRequest | None" = None,
-        labelling=None) -> RunState:
+        labelling=None, compile_ahead: bool = True) -> RunState:
     """Trains `cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to resume).
 
     `max_chunks` stops early after that many chunks (used by tests to simulate an
@@ -54,6 +54,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     train side by side in threads (the grid's), which the main thread's Ctrl-C sets.
     `labelling`: where and how long a method that asks a person waits for answers
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
+    `compile_ahead`: compile the later programs (evaluation, the method's events, other
+    chunk lengths) in a background thread from the start (`Engine.compile_run_ahead`).
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
@@ -92,6 +94,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     own_interrupt = interrupt is None
     interrupt = interrupt or StopRequest()
     engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
+    if compile_ahead and max_chunks is None:  # a run cut short (tests) would compile
+        engine.compile_run_ahead(rs, step)    # programs it never runs
     try:
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
@@ -139,8 +143,11 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 log.log(step, s, perf)
             log.flush()  # a crash or kill loses at most the chunk in flight
             for name in sorted(set(engine.compile_seconds) - compiled_before):
+                ahead = engine.ahead_seconds.get(name)
                 bar.write(f"compiled {name} in {engine.compile_seconds[name]:.1f} s "
-                          "(once per shape; not counted in env steps/s)")
+                          + (f"(waited for; {ahead:.1f} s compiling in the background) "
+                             if ahead is not None else "")
+                          + "(once per shape; not counted in env steps/s)")
             bar.advance(length, sum(v for k, v in timer.seconds.items() if k != "compile_s"))
             if stop and step < cfg.steps:
                 raise Interrupted(run_dir, step)
@@ -149,6 +156,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             interrupt.restore()
         if engine.person is not None:
             engine.person.close()
+        engine.close()
         bar.close()
         log.close()
         ckpt.close()

@@ -108,3 +108,9 @@ class Method:
     def run_event(self, rs: RunState, step: int) -> tuple[RunState, dict]:
         """Host side: the compiled event(s) before global step `step`; (rs, metrics [S])."""
         raise NotImplementedError(f"{type(self).__name__} has no events")
+
+    def programs(self, rs: RunState) -> list[tuple[str, object, tuple]]:
+        """(name, jitted fn, example args) of the programs `run_event` will compile, in the
+        order the events need them: the engine compiles them in the background while the
+        run goes on (a name `run_event` does not ask for is compiled for nothing)."""
+        return []

@@ -112,7 +112,7 @@ class Mrn(Pebble):
         if step in super().event_steps():
             rs, metrics = super().run_event(rs, step)
         if step in self.meta_steps():
-            fn = self.kit.per_seed(self.meta_step, (0, None), donate_argnums=0)
+            fn = self._meta_program()
             t = np.int32(step)
             compiled = self.kit.compile("meta_step", fn, rs, t)
             t0 = time.perf_counter()
@@ -120,6 +120,13 @@ class Mrn(Pebble):
             metrics = {**metrics, **meta,
                        "perf/meta_step_s": np.full(len(self.cfg.seeds), time.perf_counter() - t0)}
         return rs, metrics
+
+    def programs(self, rs):
+        meta = [("meta_step", self._meta_program(), (rs, np.int32(0)))] if self.meta_steps() else []
+        return super().programs(rs) + meta
+
+    def _meta_program(self):
+        return self.kit.per_seed(self.meta_step, (0, None), donate_argnums=0)
 
 
 def recent_pairs(ms: PebbleState, n: int):

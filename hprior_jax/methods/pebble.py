@@ -141,6 +141,10 @@ class Extension:
     def run_event(self, rs: RunState, step: int) -> tuple[RunState, dict]:
         raise NotImplementedError
 
+    def programs(self, rs: RunState) -> list:
+        """The programs of its events, to compile ahead (`Method.programs`)."""
+        return []
+
     def reward_terms(self, rs: RunState, ms: PebbleState
                      ) -> tuple[tuple[RewardTerm, ...], PebbleState]:
         """The terms of this round's reward update (called inside the compiled round, before
@@ -403,13 +407,30 @@ class Pebble(Method):
             if self.asks_person:
                 rs, round_metrics = self._human_round(rs, step, n, first)
             else:
-                fn = self.kit.per_seed(partial(self.feedback_round, first=first,
-                                               queries=self.pcfg.queries_per_round),
-                                       (0, None), donate_argnums=0)
-                name = "feedback_round/first" if first else "feedback_round"
+                name, fn = self._round_program(first)
                 rs, round_metrics = self.kit.compile(name, fn, rs, n)(rs, n)
             metrics = {**metrics, **round_metrics}
         return rs, metrics
+
+    def programs(self, rs: RunState):
+        n = np.int32(self.pcfg.queries_per_round)
+        rounds = [self._round_program(first) for first in (True, False)
+                  if any((s == self.first_round_step) == first for s, _ in self.rounds())]
+        rounds = [(name, fn, (rs, n)) for name, fn in rounds]
+        ext = self.ext.programs(rs)  # its first event comes before the first round (PRIOR's)
+        return ext[:1] + rounds[:1] + ext[1:] + rounds[1:]
+
+    def _round_program(self, first: bool):
+        """(name, fn) of a round's program: the whole scripted round, or the first half of
+        a person's (the second compiles while the person answers)."""
+        suffix = "/first" if first else ""
+        if self.asks_person:
+            return f"human_queries{suffix}", self.kit.per_seed(
+                partial(self.human_queries, first=first, queries=self.pcfg.queries_per_round),
+                (0, None))
+        return f"feedback_round{suffix}", self.kit.per_seed(
+            partial(self.feedback_round, first=first, queries=self.pcfg.queries_per_round),
+            (0, None), donate_argnums=0)
 
     def _human_round(self, rs: RunState, step: int, n: np.int32, first: bool):
         """Propose (compiled), ask the person (host, may wait for hours or stop the run),
@@ -417,9 +438,8 @@ class Pebble(Method):
         from hprior_jax.loop.devices import fetch
 
         suffix = "/first" if first else ""
-        propose = self.kit.per_seed(partial(self.human_queries, first=first,
-                                            queries=self.pcfg.queries_per_round), (0, None))
-        pairs, shown = self.kit.compile(f"human_queries{suffix}", propose, rs, n)(rs, n)
+        name, propose = self._round_program(first)
+        pairs, shown = self.kit.compile(name, propose, rs, n)(rs, n)
         number = [s for s, _ in self.rounds()].index(step) + 1
         labels, valid = self.kit.person.ask(number, step, fetch(shown), int(n))
         labels, valid = self.kit.place(labels), self.kit.place(valid)

@@ -189,16 +189,23 @@ class WorldModelPrior(Extension):
 
     # -- host side -------------------------------------------------------------------------
     def run_event(self, rs: RunState, step: int):
-        pretrain = step == self.first_round_step
-        name = "world_model/pretrain" if pretrain else "world_model/update"
-        fn = self.kit.per_seed(partial(self.train_world_model, pretrain=pretrain),
-                               donate_argnums=0)
+        name, fn = self._world_model_program(step == self.first_round_step)
         compiled = self.kit.compile(name, fn, rs)
         t0 = time.perf_counter()
         rs, metrics = jax.block_until_ready(compiled(rs))
         metrics = dict(metrics)
         metrics["perf/world_model_s"] = np.full(len(self.cfg.seeds), time.perf_counter() - t0)
         return rs, metrics
+
+    def programs(self, rs: RunState):
+        later = len(self.event_steps()) > 1
+        return [(*self._world_model_program(pretrain), (rs,))
+                for pretrain in (True, False) if pretrain or later]
+
+    def _world_model_program(self, pretrain: bool):
+        return ("world_model/pretrain" if pretrain else "world_model/update",
+                self.kit.per_seed(partial(self.train_world_model, pretrain=pretrain),
+                                  donate_argnums=0))
 
 
 # the world model at the paper's size (TWM: 10 layers x 256) costs seconds per update on a CPU;

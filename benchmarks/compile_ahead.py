@@ -1,0 +1,51 @@
+"""Cold start with and without compiling the later programs ahead in a background thread.
+
+`python -m benchmarks.compile_ahead [--repeats 2]`: `hprior train --task cheetah_run --algo
+pebble --preset reduced` on one seed for 12000 steps (the first chunk, evaluations at 5000
+and 10000, the first feedback round at 10000), each run with a fresh persistent compilation
+cache (cold), alternating `--no-compile-ahead` (before) and the default (after). Writes
+benchmarks/results/compile_ahead.csv: wall seconds of the whole run (process start to exit),
+the compile seconds the main thread spent or waited for (perf/compile_s), and the parts'
+seconds. The first chunk's program is compiled by the main thread either way.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import tempfile
+from pathlib import Path
+
+from benchmarks.end_to_end import one_run
+
+OUT = Path(__file__).parent / "results" / "compile_ahead.csv"
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--steps", type=int, default=12_000)
+    args = p.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.repeats):
+            for mode, extra in (("inline", ("--no-compile-ahead",)), ("ahead", ())):
+                name = f"{mode}_{r}"
+                row = one_run("cheetah_run", "pebble", 1, "reduced", args.steps, Path(tmp),
+                              extra_args=extra, name=name)
+                row.update(mode=mode, repeat=r)
+                rows.append(row)
+                print(f"{name}: wall {row['wall_s']:.1f} s, compile waited "
+                      f"{row['compile_s']:.1f} s", flush=True)
+    keys = ["mode", "repeat", "wall_s", "compile_s", "chunk_s", "eval_s",
+            "event_s", "env_steps_per_s"]
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    with open(OUT, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore", lineterminator="\n")
+        w.writeheader()
+        w.writerows({k: (round(v, 2) if isinstance(v, float) else v) for k, v in row.items()}
+                    for row in rows)
+    print(f"wrote {OUT}")
+
+
+if __name__ == "__main__":
+    main()
