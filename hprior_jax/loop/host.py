@@ -143,11 +143,13 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 log.log(step, s, perf)
             log.flush()  # a crash or kill loses at most the chunk in flight
             for name in sorted(set(engine.compile_seconds) - compiled_before):
-                ahead = engine.ahead_seconds.get(name)
-                bar.write(f"compiled {name} in {engine.compile_seconds[name]:.1f} s "
-                          + (f"(waited for; {ahead:.1f} s compiling in the background) "
-                             if ahead is not None else "")
-                          + "(once per shape; not counted in env steps/s)")
+                ahead, waited = engine.ahead_seconds.get(name), engine.compile_seconds[name]
+                bar.write(f"compiled {name} in {waited:.1f} s" if ahead is None else
+                          f"compiled {name} in the background in {ahead:.1f} s (the run "
+                          f"waited {waited:.1f} s for it)")
+                if len(engine.compile_seconds) == 1:
+                    bar.write("  (once per shape, not counted in env steps/s; cached in "
+                              "$HPRIOR_JAX_CACHE for the next start)")
             bar.advance(length, sum(v for k, v in timer.seconds.items() if k != "compile_s"))
             if stop and step < cfg.steps:
                 raise Interrupted(run_dir, step)
