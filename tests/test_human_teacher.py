@@ -120,6 +120,9 @@ def test_a_person_answering_as_the_oracle_trains_the_oracles_run(tmp_path):
                if l]
     assert len(queries) == 40 and {q["seed"] for q in queries} == {3, 4}
     _assert_same_run(tmp_path / "oracle", run_dir)
+    waits = [json.loads(l).get("perf/label_wait_s") for l in
+             (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert sum(1 for w in waits if w) == 2 * 2  # per seed, after each round's chunk
     last_round = [m for m in _metrics(run_dir) if "feedback/mistakes" in m][-1]
     assert last_round["feedback/mistakes"] == 0 and last_round["feedback/labeled"] == 10
 

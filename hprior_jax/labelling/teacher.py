@@ -49,6 +49,7 @@ class HumanTeacher:
         self._server: BackgroundServer | None = None
         self._renderer: threading.Thread | None = None
         self._stop_rendering = threading.Event()
+        self.waited_s = 0.0  # seconds the run has waited for answers (logged apart)
 
     @property
     def url(self) -> str:
@@ -67,7 +68,11 @@ class HumanTeacher:
         self._write(round_, shown, ids)
         flat = [q for seed_ids in ids for q in seed_ids]
         self._render_ahead(flat)
-        self._wait(round_, step, flat)
+        t0 = time.perf_counter()
+        try:
+            self._wait(round_, step, flat)
+        finally:
+            self.waited_s += time.perf_counter() - t0
         labels = np.zeros((num_seeds, num_pairs), np.int32)
         valid = np.zeros((num_seeds, num_pairs), bool)
         for i, seed_ids in enumerate(ids):

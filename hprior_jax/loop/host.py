@@ -105,9 +105,12 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                     # a person may stop the run while the round waits: it resumes from here
                     ckpt.save(step, rs)
                     last_ckpt = step
+                waited = engine.person.waited_s if engine.person is not None else 0.0
                 with timer("event_s"), _stopped_waiting(run_dir, step):
                     rs, event_metrics = engine.run_event(rs, step)
                     event_metrics = devices.fetch(event_metrics)
+                if engine.person is not None:  # a person's time is not the event's
+                    timer.move("event_s", "label_wait_s", engine.person.waited_s - waited)
                 _finite_or_raise(event_metrics, step, step, seeds, run_dir, last_ckpt)
                 for i, s in enumerate(seeds):
                     log.log(step, s, {k: np.asarray(v)[i] for k, v in event_metrics.items()})
@@ -150,7 +153,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 if len(engine.compile_seconds) == 1:
                     bar.write("  (once per shape, not counted in env steps/s; cached in "
                               "$HPRIOR_JAX_CACHE for the next start)")
-            bar.advance(length, sum(v for k, v in timer.seconds.items() if k != "compile_s"))
+            bar.advance(length, sum(v for k, v in timer.seconds.items()
+                                    if k not in ("compile_s", "label_wait_s")))
             if stop and step < cfg.steps:
                 raise Interrupted(run_dir, step)
     finally:
@@ -242,6 +246,11 @@ class _WallTimer:
         compiled = sum(v for k, v in self.compile_seconds.items() if k not in before)
         self.seconds["compile_s"] += compiled
         self.seconds[part] = self.seconds.get(part, 0.0) + time.perf_counter() - t0 - compiled
+
+    def move(self, source: str, part: str, seconds: float) -> None:
+        """Counts `seconds` of `source` under `part` instead."""
+        self.seconds[source] -= seconds
+        self.seconds[part] = self.seconds.get(part, 0.0) + seconds
 
 
 def _log_chunk(log, seeds, step0: int, metrics: dict, has_success: bool) -> None:
