@@ -51,8 +51,8 @@ class HumanTeacher:
         self._stop_rendering = threading.Event()
         self.waited_s = 0.0  # seconds the run has waited for answers (logged apart)
 
-    @property
-    def url(self) -> str:
+    def serve(self) -> str:
+        """Starts serving the folder (once) and returns its address."""
         if self._server is None:
             self._server = BackgroundServer(self.folder, self.options.server.resolved())
         return self._server.url
@@ -138,7 +138,7 @@ class HumanTeacher:
 
     def _wait(self, round_: int, step: int, ids: list[str]) -> None:
         per_seed = len(ids) // max(len(self.seeds), 1)
-        url = self.url
+        url = self.serve()
         self.say(f"feedback round {round_} (step {step}): {len(ids)} queries ({per_seed} per "
                  f"seed x {len(self.seeds)} seeds) wait for your answers: open {url}\n"
                  "  (Ctrl-C checkpoints and stops; `hprior train --resume` asks again and "
