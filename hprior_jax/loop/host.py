@@ -93,10 +93,10 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     events = set(engine.event_steps())
     own_interrupt = interrupt is None
     interrupt = interrupt or StopRequest()
-    engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
-    if compile_ahead and max_chunks is None:  # a run cut short (tests) would compile
-        engine.compile_run_ahead(rs, step)    # programs it never runs
     try:
+        engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
+        if compile_ahead and max_chunks is None:  # a run cut short (tests) would compile
+            engine.compile_run_ahead(rs, step)    # programs it never runs
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
             timer = _WallTimer(engine.compile_seconds)  # wall time per part, compiles apart
