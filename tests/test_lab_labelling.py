@@ -5,16 +5,15 @@ import json
 import numpy as np
 import pytest
 
+from hprior_jax.lab.dataset import random_pairs
 from hprior_jax.lab.learn import GivenLabels, Lab
 from hprior_jax.lab.sweep import score
 from tests.test_reward_lab import T, confounded, quiet, tiny
 
 
 def _oracle_pairs(data, n, seed=0):
-    rng = np.random.default_rng(seed)
     e, length = data.train_reward.shape
-    starts = lambda: rng.integers(0, length - T + 1, n)
-    index = np.stack([rng.integers(0, e, n), starts(), rng.integers(0, e, n), starts()], 1)
+    index = random_pairs(np.random.default_rng(seed), e, length, T, n)
     ret = lambda ep, st: np.array([data.train_reward[a, b:b + T].sum() for a, b in zip(ep, st)])
     r1, r2 = ret(index[:, 0], index[:, 1]), ret(index[:, 2], index[:, 3])
     keep = r1 != r2

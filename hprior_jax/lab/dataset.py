@@ -110,9 +110,7 @@ def heldout_pairs(reward: np.ndarray, segment_len: int, num_pairs: int,
     seg_return = lambda ep, st: cum[ep, st + segment_len] - cum[ep, st]
     index, labels, found = [], [], 0
     for _ in range(100):
-        starts = lambda: rng.integers(0, length - segment_len + 1, num_pairs)
-        cand = np.stack([rng.integers(0, e, num_pairs), starts(),
-                         rng.integers(0, e, num_pairs), starts()], 1)
+        cand = random_pairs(rng, e, length, segment_len, num_pairs)
         r1, r2 = seg_return(cand[:, 0], cand[:, 1]), seg_return(cand[:, 2], cand[:, 3])
         keep = r1 != r2
         index.append(cand[keep])
@@ -121,6 +119,15 @@ def heldout_pairs(reward: np.ndarray, segment_len: int, num_pairs: int,
         if found >= num_pairs:
             return np.concatenate(index)[:num_pairs], np.concatenate(labels)[:num_pairs]
     raise ValueError(f"found only {found} held-out pairs with distinct true returns")
+
+
+def random_pairs(rng: np.random.Generator, episodes: int, length: int, segment_len: int,
+                 num_pairs: int) -> np.ndarray:
+    """int[num_pairs, 4]: (episode, start) of segment 1, then of segment 2, each drawn
+    uniformly and independently (every start whose segment fits in the episode)."""
+    starts = lambda: rng.integers(0, length - segment_len + 1, num_pairs)
+    return np.stack([rng.integers(0, episodes, num_pairs), starts(),
+                     rng.integers(0, episodes, num_pairs), starts()], 1)
 
 
 def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "reduced",

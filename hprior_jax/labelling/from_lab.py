@@ -20,7 +20,7 @@ def queries_from_lab(dataset: Path, out: Path, pairs: int = 50, seed: int = 0) -
     dataset's length, independent episodes and starts drawn with `seed`) into the query
     folder `out`. Returns the query ids."""
     import tasks
-    from hprior_jax.lab.dataset import Dataset
+    from hprior_jax.lab.dataset import Dataset, random_pairs
     from hprior_jax.labelling.store import write_queries
 
     if pairs < 1:
@@ -31,10 +31,8 @@ def queries_from_lab(dataset: Path, out: Path, pairs: int = 50, seed: int = 0) -
         raise ValueError(f"{dataset} keeps no physics states to render: build the dataset "
                          f"with `hprior reward-lab --task {data.task} --dataset-only --physics`")
     episodes, length = data.train_reward.shape
-    rng = np.random.default_rng(seed)
-    starts = lambda: rng.integers(0, length - data.segment_len + 1, pairs)
-    index = np.stack([rng.integers(0, episodes, pairs), starts(),
-                      rng.integers(0, episodes, pairs), starts()], axis=1)
+    index = random_pairs(np.random.default_rng(seed), episodes, length, data.segment_len,
+                         pairs)
 
     def segment(episode, start):
         steps = slice(start, start + data.segment_len)

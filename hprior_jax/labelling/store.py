@@ -49,6 +49,11 @@ def query_id(round_: int, index: int, seed: int | None = None) -> str:
     return f"r{round_}-" + ("" if seed is None else f"s{seed}-") + f"q{index:04d}"
 
 
+def pair_arrays(one: dict, two: dict) -> dict:
+    """A query's two segments as stored: each field named with its side (qpos1, qpos2)."""
+    return {f"{k}1": v for k, v in one.items()} | {f"{k}2": v for k, v in two.items()}
+
+
 def write_queries(folder: Path, task: str, round_: int, segments: list[tuple[dict, dict]],
                   fps: float, first_index: int = 0, seed: int | None = None) -> list[str]:
     """Adds one round of queries: `segments[i]` = (states of segment 1, of segment 2), each
@@ -59,7 +64,7 @@ def write_queries(folder: Path, task: str, round_: int, segments: list[tuple[dic
     ids = []
     for i, (one, two) in enumerate(segments, start=first_index):
         qid = query_id(round_, i, seed)
-        arrays = {f"{k}1": v for k, v in one.items()} | {f"{k}2": v for k, v in two.items()}
+        arrays = pair_arrays(one, two)
         path = folder / "segments" / f"{qid}.npz"
         np.savez(path.with_suffix(".tmp.npz"), **arrays)
         os.replace(path.with_suffix(".tmp.npz"), path)

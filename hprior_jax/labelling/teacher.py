@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from hprior_jax.labelling.server import BackgroundServer, ServerOptions
-from hprior_jax.labelling.store import QueryFolder, query_id, write_queries
+from hprior_jax.labelling.store import QueryFolder, pair_arrays, query_id, write_queries
 
 
 class LabellingStopped(Exception):
@@ -102,8 +102,7 @@ class HumanTeacher:
                     write_queries(self.dir, self.task.name, round_, [(one, two)], fps,
                                   first_index=q, seed=seed)
                     continue
-                stored = self.folder.segment_arrays(qid)
-                new = {f"{k}1": v for k, v in one.items()} | {f"{k}2": v for k, v in two.items()}
+                stored, new = self.folder.segment_arrays(qid), pair_arrays(one, two)
                 if stored.keys() != new.keys() or not all(
                         np.allclose(stored[k], new[k], rtol=1e-5, atol=1e-6) for k in new):
                     raise RuntimeError(

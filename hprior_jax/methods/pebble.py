@@ -414,9 +414,9 @@ class Pebble(Method):
 
     def programs(self, rs: RunState):
         n = np.int32(self.pcfg.queries_per_round)
-        rounds = [self._round_program(first) for first in (True, False)
-                  if any((s == self.first_round_step) == first for s, _ in self.rounds())]
-        rounds = [(name, fn, (rs, n)) for name, fn in rounds]
+        later = len(self.rounds()) > 1  # the first round always fits (checked at build)
+        rounds = [(*self._round_program(first), (rs, n))
+                  for first in (True, False) if first or later]
         ext = self.ext.programs(rs)  # its first event comes before the first round (PRIOR's)
         return ext[:1] + rounds[:1] + ext[1:] + rounds[1:]
 
