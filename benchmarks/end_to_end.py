@@ -54,11 +54,23 @@ def perf_totals(metrics_file: Path, first_seed: int) -> dict:
     return {"steps": steps, **{p: totals[p] for p in PARTS}}
 
 
+def first_record(metrics_file: Path, key: str) -> float:
+    """The first value of `key` in the run's metrics (nan if never logged)."""
+    with open(metrics_file) as f:
+        for line in f:
+            rec = json.loads(line)
+            if key in rec:
+                return float(rec[key])
+    return float("nan")
+
+
 def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
             work: Path, device: str = "cpu", extra_args: tuple[str, ...] = (),
-            extra_env: dict | None = None, name: str | None = None) -> dict:
+            extra_env: dict | None = None, name: str | None = None,
+            cache: str | None = None) -> dict:
     """One `hprior train` child; `extra_args` / `extra_env` go to it (e.g. `--devices 2` and
-    the XLA flag that makes CPU devices), `name` labels its folder (default algo_seeds)."""
+    the XLA flag that makes CPU devices), `name` labels its folder (default algo_seeds),
+    `cache` its compilation cache's (default: the name, so a new name starts cold)."""
     name = name or f"{algo}_{n_seeds}"
     run_dir = work / name
     seeds = [str(s) for s in SEEDS[:n_seeds]]
@@ -67,7 +79,8 @@ def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
            *extra_args]
     if steps is not None:
         cmd += ["--steps", str(steps)]
-    env = dict(os.environ, HPRIOR_JAX_CACHE=str(work / f"cache_{name}"), **(extra_env or {}))
+    env = dict(os.environ, HPRIOR_JAX_CACHE=str(work / f"cache_{cache or name}"),
+               **(extra_env or {}))
     if device == "cpu":
         env["JAX_PLATFORMS"] = "cpu"
     log_path = work / f"{name}.log"
@@ -80,6 +93,7 @@ def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{log_path.read_text()[-4000:]}")
     peak_kb = usage.ru_maxrss  # KiB on Linux
     totals = perf_totals(run_dir / "metrics.jsonl", int(seeds[0]))
+    totals["first_step_s"] = first_record(run_dir / "metrics.jsonl", "perf/first_step_s")
     measured = sum(totals[p] for p in PARTS if p not in INSIDE_EVENTS)
     return {"task": task, "algo": algo, "seeds": n_seeds, "preset": preset, "device": device,
             **totals,

@@ -6,6 +6,7 @@ only as the engine and the method name them.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -55,7 +56,10 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     `labelling`: where and how long a method that asks a person waits for answers
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
     `compile_ahead`: compile the later programs (evaluation, the method's events, other
-    chunk lengths) in a background thread from the start (`Engine.compile_run_ahead`).
+    chunk lengths) in a background thread from the start (`Engine.compile_run_ahead`), and
+    run the first phase's chunks by a program of that phase alone, which the main thread
+    compiles in seconds (`Engine._chunk_name`). Each chunk's perf records hold its wall
+    time parts; the first chunk's also `perf/first_step_s` (process start to first env step).
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
@@ -96,7 +100,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     try:
         engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
         if compile_ahead and max_chunks is None:  # a run cut short (tests) would compile
-            engine.compile_run_ahead(rs, step)    # programs it never runs
+            engine.first_phase_apart = True       # programs it never runs
+            engine.compile_run_ahead(rs, step)
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
             timer = _WallTimer(engine.compile_seconds)  # wall time per part, compiles apart
@@ -116,7 +121,9 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                     log.log(step, s, {k: np.asarray(v)[i] for k, v in event_metrics.items()})
             phase, length = engine.chunk_plan(step)
             with timer("chunk_s"):  # env steps and agent updates: one fused program
-                rs, metrics = engine.run_chunk(rs, step, length)
+                program = engine.compiled_chunk(rs, step, length)
+                first_step = process_age() if chunks == 0 else None
+                rs, metrics = program(rs, np.int32(step))
                 metrics = devices.fetch(metrics)
             keep = engine.phase_metrics(phase)  # drop placeholders of other phases
             metrics = {k: v for k, v in metrics.items()
@@ -142,6 +149,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             perf = {"perf/env_steps_per_s": length * len(seeds) / max(timer.seconds["chunk_s"],
                                                                       1e-9)}
             perf.update({f"perf/{k}": v for k, v in timer.seconds.items() if v or k == "chunk_s"})
+            if first_step is not None:  # how long this process took to its first env step
+                perf["perf/first_step_s"] = first_step
             for s in seeds:
                 log.log(step, s, perf)
             log.flush()  # a crash or kill loses at most the chunk in flight
@@ -170,6 +179,20 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         plot_learning_curve(run_dir / "eval.csv", run_dir / "learning_curve.png",
                             title=f"{cfg.algo} on {cfg.task}")
     return rs
+
+
+def process_age() -> float:
+    """Seconds since this process started (Linux: from /proc; elsewhere: since this module
+    was imported, which misses the interpreter's start and the first imports)."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return time.perf_counter() - _IMPORTED
+
+
+_IMPORTED = time.perf_counter()
 
 
 def _person(engine: Engine, run_dir: Path, options, interrupt: "StopRequest", bar):
