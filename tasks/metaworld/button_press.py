@@ -36,6 +36,16 @@ metaworld's own wrist mesh and the box's 4 slabs as separate pairs (instead of o
 the return is x0.99 (20 episodes, C MuJoCo), with 32- or 96-point hulls of that mesh x1.20
 and x1.17, with the box x1.23; under MJX the full mesh runs at 14 env steps/s at batch 64
 (SAT over its 883-vertex hull), against 385 with the box, so the box stays.
+Tried on 2026-12-02 and not kept (commit b56a11c holds the code and scripts): where the wrist
+meets the box, metaworld's mesh enters the button's hole by a few mm (its front tapers from
+5.4 x 5.1 cm to 1.3 x 0.2 cm over its last 8 mm; the hole is 5.2 x 4.8 cm) and touches the hole's
+rim. A second wrist collider for that front (support points of the mesh's hull in {32, 64}
+directions, the part ahead of 3 cm from the wrist's centre) against the box's 4 slabs, the
+box still meeting the button: under MJX (20 episodes) return x1.14 / x1.10, but the button
+then goes to -0.093 / -0.096 (past metaworld's -0.084 + 1 cm for 64), at 272 / 215 env
+steps/s at batch 64 against 615 with the box in the same run (a lab run shared the
+machine; the 385 above is an earlier measurement). C MuJoCo was as sensitive to
+the shape: x1.09 with 64 directions, x1.01 with 128 but the button at -0.095.
 Before the free hand kept metaworld's constraint weights (sawyer.py): return x1.02 but the
 button went to -0.101 and hand-mocap x0.63.
 """

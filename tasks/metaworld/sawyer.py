@@ -154,12 +154,6 @@ class SceneSpec:
     # object geoms (same form as object_geoms) paired with the wrist: metaworld's collision
     # mesh of `right_hand` (the gripper base), replaced by its bounding box named "wrist"
     wrist_geoms: tuple = ()
-    # parts (same form as extra_pairs' sides) where the wrist's front decides the contact: they
-    # meet "wrist_front", a second collider on `right_hand` (the convex hull of the mesh's
-    # bounding rectangles between the cuts `wrist_front_cuts`, see _wrist_slice_hull) instead
-    # of the box, whose corners stand ~1 cm wider than the mesh's tapered front
-    wrist_front_geoms: tuple = ()
-    wrist_front_cuts: tuple = ()
     # primitive geoms added to the scene for pairs (e.g. a plane for a box face that only one
     # part can reach): (name, body, mjtGeom type name, size, pos, quat, params_like) with
     # params_like a geom name or (body, index) whose contact parameters the new geom takes
@@ -202,36 +196,6 @@ def _wrist_hull_points(model, data, g, body, k):
         chosen.append(i)
         dist = np.minimum(dist, np.linalg.norm(hull - hull[i], axis=1))
     return hull[chosen]
-
-
-def _wrist_slice_hull(model, data, g, body, cuts) -> np.ndarray:
-    """Points of a convex collider for the front of mesh g, tight where it tapers: the mesh's
-    convex hull (what MuJoCo collides) from the first cut to the tip, cut into slabs along the
-    approach axis (`body`'s y: right_hand's y points from the wrist to the fingers) at `cuts`
-    (m, in `body`'s frame); the 8 corners of each slab's bounding box. Their hull contains
-    that part of the mesh's hull, touching it at each slab's extremes; what lies behind the
-    first cut is left out. In `body`'s frame."""
-    from scipy.spatial import ConvexHull
-    local = _mesh_vertices(model, data, g, body)
-    hull = ConvexHull(local)
-    points = local[hull.vertices]
-    edges = np.array([*cuts, points[:, 1].max()])
-    # where the hull's edges cross the cut planes: a slab's extent includes its end sections
-    a = local[hull.simplices]
-    b = np.roll(a, 1, axis=1)
-    a, b = a.reshape(-1, 3), b.reshape(-1, 3)
-    for c in edges[:-1]:
-        crossing = (a[:, 1] - c) * (b[:, 1] - c) < 0
-        t = (c - a[crossing, 1]) / (b[crossing, 1] - a[crossing, 1])
-        points = np.vstack([points, a[crossing] + t[:, None] * (b[crossing] - a[crossing])])
-    corners = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        part = points[(points[:, 1] >= lo - 1e-12) & (points[:, 1] <= hi + 1e-12)]
-        corners += [(x, y, z) for x in (part[:, 0].min(), part[:, 0].max())
-                    for y in (lo, part[:, 1].max())
-                    for z in (part[:, 2].min(), part[:, 2].max())]
-    corners = np.unique(np.array(corners), axis=0)
-    return corners[ConvexHull(corners).vertices]
 
 
 def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
@@ -288,7 +252,7 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     wrist_src = next(g for g in range(full.ngeom) if full.geom_bodyid[g] == full.body(
         "right_hand").id and full.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
         and full.geom_contype[g])
-    param_src = {"wrist": wrist_src, "wrist_front": wrist_src}
+    param_src = {"wrist": wrist_src}
     for name, _, _, _, _, _, like in scene.fixtures:
         param_src[name] = full.geom(resolve(like)).id
 
@@ -298,8 +262,6 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
             pair_names.append((hg, og))
     for og in expand(scene.wrist_geoms):
         pair_names.append(("wrist", og))
-    for ref in scene.wrist_front_geoms:
-        pair_names.append(("wrist_front", resolve(ref)))
     for pair in scene.extra_pairs:
         pair_names.append(tuple(resolve(n) for n in pair))
 
@@ -368,12 +330,6 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
         spec.body("right_hand").add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_BOX,
                                          size=list(wrist_size), pos=list(wrist_pos),
                                          quat=list(wrist_quat))
-    if "wrist_front" in used:
-        pts = _wrist_slice_hull(full, full_data, wrist_src, full.body("right_hand").id,
-                                scene.wrist_front_cuts)
-        spec.add_mesh(name="wrist_front_mesh", uservert=pts.ravel().tolist())
-        spec.body("right_hand").add_geom(name="wrist_front", type=mujoco.mjtGeom.mjGEOM_MESH,
-                                         meshname="wrist_front_mesh")
     for name, body, gtype, size, pos, quat, _ in scene.fixtures:
         spec.body(body).add_geom(name=name, type=getattr(mujoco.mjtGeom, f"mjGEOM_{gtype}"),
                                  size=list(size), pos=list(pos), quat=list(quat))
@@ -381,9 +337,8 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
         g.contype, g.conaffinity = 0, 0  # only the explicit pairs below collide
     for coll in (spec.meshes, spec.textures, spec.materials):
         for item in list(coll):
-            if item.name in {"mesh": ("eGripperBase",), "box": ()}.get(
-                    wrist, ("wrist_hull",)) + ("wrist_front_mesh",):
-                continue  # the meshes the wrist geoms use
+            if item.name in {"mesh": ("eGripperBase",), "box": ()}.get(wrist, ("wrist_hull",)):
+                continue  # the mesh the wrist geom uses
             spec.delete(item)
     for g in spec.geoms:
         g.material = ""
