@@ -56,14 +56,14 @@ POLICY_READS_GOAL = ("sweep_into",)  # see benchmarks/metaworld_parity.py
 STEPS = 500
 
 
-def make_task(name: str, variant: str | None = None, wrist: str | None = None):
-    """The registered port (variant and wrist None), or the port built with
-    `arm=variant != "free"` and the given wrist collider (default: the task's; see
-    sawyer.build_scene)."""
-    if variant is None and wrist is None:
+def make_task(name: str, variant: str | None = None, wrist: str | None = None, **options):
+    """The registered port (variant, wrist and options None), or the port built with
+    `arm=variant != "free"`, the given wrist collider (default: the task's; see
+    sawyer.build_scene) and further constructor `options` (e.g. metaworld_invweights)."""
+    if variant is None and wrist is None and not options:
         return tasks.make(name)
     cls = getattr(importlib.import_module(f"tasks.metaworld.{name}"), CLASSES[name])
-    kwargs = {"arm": variant != "free"}
+    kwargs = {"arm": variant != "free", **options}
     if wrist is not None:
         kwargs["wrist"] = int(wrist) if wrist.isdigit() else wrist
     elif variant == "free":

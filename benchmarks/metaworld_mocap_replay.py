@@ -1,7 +1,7 @@
 """Open-loop replay of metaworld's own mocap path on the port's scene (C MuJoCo).
 
     python -m benchmarks.metaworld_mocap_replay [--tasks drawer_open ...] [--episodes 4]
-        [--steps 500] [--out CSV]
+        [--steps 500] [--variant arm|free] [--out CSV]
 
 metaworld's scripted policy drives metaworld's env closed loop; every step we record the
 mocap target, the gripper control, the hand's position and the object joint. The port's
@@ -12,6 +12,8 @@ how far the port's hand is from metaworld's, how far its object joint is from me
 and the hand-mocap lag on both sides, in the first 60 steps (reaching, no contact) and
 over the episode. Each task runs twice: with metaworld's compiled constraint weights (the
 registered scene) and with the simplified scene's own (`metaworld_invweights=False`).
+`--variant` picks the scene as in benchmarks/metaworld_dynamics.py (`arm`, the registered
+one, or `free`, the first ports' free hand); rows are keyed by (task, scene, invweights).
 """
 from __future__ import annotations
 
@@ -110,23 +112,26 @@ def main():
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--steps", type=int, default=500)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--variant", default="arm", choices=["arm", "free"])
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args()
     warnings.filterwarnings("ignore", message="Constant")  # metaworld policies' p warnings
     rows = []
     for name in args.tasks:
-        registered = make_task(name)
-        episodes = record_metaworld(name, args.episodes, args.seed, args.steps, registered)
-        for weights, task in (("metaworld", registered),
-                              ("own", type(registered)(metaworld_invweights=False))):
-            row = dict(task=name, invweights=weights, episodes=args.episodes, steps=args.steps,
+        scene = make_task(name, args.variant)
+        episodes = record_metaworld(name, args.episodes, args.seed, args.steps, scene)
+        for weights, task in (("metaworld", scene),
+                              ("own", make_task(name, args.variant, metaworld_invweights=False))):
+            row = dict(task=name, scene=args.variant, invweights=weights,
+                       episodes=args.episodes, steps=args.steps,
                        **compare(episodes, replay(task, name, episodes)),
                        metaworld=metaworld_version(), mujoco=mujoco.__version__, seed=args.seed)
             print({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()},
                   flush=True)
             rows.append(row)
-    rerun = {(r["task"], r["invweights"]) for r in rows}
-    keep = [r for r in read_rows(Path(args.out)) if (r["task"], r["invweights"]) not in rerun]
+    key = lambda r: (r["task"], r.get("scene"), r["invweights"])
+    rerun = {key(r) for r in rows}
+    keep = [r for r in read_rows(Path(args.out)) if key(r) not in rerun]
     write_rows(rows, Path(args.out), keep=keep)
 
 
