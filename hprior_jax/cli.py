@@ -149,8 +149,7 @@ def _train_description(algo: str) -> str:
             "--label-timeout S (stop with a checkpoint after S seconds without an answer; "
             "default 3600). --no-compile-ahead: compile each later program (evaluation, "
             "feedback rounds, ...) when first needed instead of in a background thread from "
-            "the start, and the first phase with the others in one program (on one core the "
-            "background compile competes with training).")
+            "the start (on one core the background compile competes with training).")
 
 
 # `hprior train` options of the labelling page a human teacher's run serves (not config:

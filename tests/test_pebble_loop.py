@@ -133,28 +133,6 @@ def test_exported_reward_is_the_runs_learned_reward(toy_runs, tmp_path):
     assert (meta["algo"], meta["seed"], meta["step"]) == ("pebble", 7, cfg.steps)
 
 
-def test_a_chunk_of_the_first_phase_runs_the_same_in_its_own_program(tmp_path):
-    """The random phase's own program (no switch over the phases, so it compiles in seconds
-    and the run starts while the full program compiles) gives the state and metrics of the
-    full program's random branch, bit for bit."""
-    cfg = _cfg(tmp_path, "x", seeds=(7, 8))
-    engine = Engine(cfg)
-    assert engine._chunk_name(0, 20) == "chunk/20"  # one program unless compiling ahead
-    engine.first_phase_apart = True
-    assert engine._chunk_name(0, 20) == "chunk/20/random"
-    assert engine._chunk_name(20, 20) == "chunk/20"
-    rs = engine.init_seeds(cfg.seeds)
-    runs = {}
-    for name in ("chunk/20/random", "chunk/20"):
-        fn, state, step0 = engine._chunk_program(rs, 0, 20, name)
-        copy = jax.tree.map(lambda x: x.copy(), state)  # the program donates its state
-        runs[name] = jax.device_get(fn(copy, step0))
-    leaves = lambda name: jax.tree.leaves(runs[name])
-    assert len(leaves("chunk/20/random")) == len(leaves("chunk/20"))
-    for a, b in zip(leaves("chunk/20/random"), leaves("chunk/20")):
-        np.testing.assert_array_equal(a, b)
-
-
 def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
     """At the start of a run the engine queues the compile of evaluation, the feedback rounds
     and the other chunk lengths on a background thread; a run whose programs all came from
@@ -162,18 +140,15 @@ def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
     ahead = _cfg(tmp_path, "ahead", seeds=(7,), steps=100, eval_every=60)
     engine = Engine(ahead)
     rs = engine.init_seeds(ahead.seeds)
-    engine.first_phase_apart = True
     engine.compile_run_ahead(rs, 0)
-    # chunks: 20 random (its own program, compiled first by the main thread), 20
-    # pre-training, the first round at 40, 20 to the eval at 60, the second round at 80, 20
-    assert list(engine._pending) == ["chunk/20", "feedback_round/first", "feedback_round",
-                                     "eval"]
+    # chunks of 20 (the main thread compiles their program first): random, pre-training,
+    # the first round at 40, 20 to the eval at 60, the second round at 80, 20: queued in
+    # the order the run needs them
+    assert list(engine._pending) == ["feedback_round/first", "feedback_round", "eval"]
     for pending in engine._pending.values():
         pending.result()
     host.run(ahead, prepare_run_dir(ahead), progress=False, engine=engine)
-    assert {"chunk/20", "eval", "feedback_round/first", "feedback_round"} <= set(
-        engine.ahead_seconds)
-    assert "chunk/20/random" in engine.compile_seconds
+    assert {"eval", "feedback_round/first", "feedback_round"} <= set(engine.ahead_seconds)
 
     inline = _cfg(tmp_path, "inline", seeds=(7,), steps=100, eval_every=60)
     engine = Engine(inline)

@@ -21,8 +21,9 @@ model is trained once per seed on the training episodes, before any round, and i
 after (the RL loop keeps training it; here the data does not change), so each pair's α is
 computed once, when the pair is stored.
 
-Cells are vmapped twice, rules inside seeds: the world model of a seed is shared by its rules,
-not copied. All rules share the seed's random streams (initial reward weights, queries,
+Cells are [seed, rule]: rules vmapped inside seeds, so the world model of a seed is shared by
+its rules, not copied; seeds vmapped too on accelerators, one after the other on CPU
+(`_over_cells`). All rules share the seed's random streams (initial reward weights, queries,
 minibatch order), so a paired comparison between rules of one seed removes that variance; with
 `feed_type="uniform"` every rule of a seed also gets exactly the same labels.
 """
@@ -333,7 +334,7 @@ class Lab:
                 f"{k} {np.mean([d[k] for d in self.diagnostics]):.3g}"
                 for k in self.diagnostics[0] if k != "seed"))
         # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
-        over_cells = lambda fn, seed_axes, rule_axes: jax.vmap(jax.vmap(fn, rule_axes), seed_axes)
+        over_cells = _over_cells
         # one-shot runs have only a first round: no candidate pool for the uncertainty rules
         feed = "uniform" if cfg.one_shot else cfg.feed_type
         rounds_fn = lambda q, b: over_cells(partial(self.round, queries=q, batch_size=b,
@@ -375,6 +376,27 @@ class Lab:
                          f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
         return rows
+
+
+def _over_cells(fn, seed_axes, rule_axes):
+    """`fn` of one cell over [seed, rule] cells (`*_axes`: 0 where an argument has that axis,
+    None where it is shared). Rules are vmapped; seeds are vmapped on accelerators and
+    mapped one after the other (`lax.map`) on CPU, where the vmapped round of 40 cells held
+    19 GiB of intermediates (sweep_into, 10 seeds x 4 rules, minibatch 128: each cell's
+    forward and backward pass over 128 x 2 segments of 50 steps) against 4 cells' worth
+    mapped, and a wider batch buys a CPU little."""
+    cells = jax.vmap(fn, rule_axes)
+    if jax.default_backend() != "cpu":
+        return jax.vmap(cells, seed_axes)
+
+    def mapped(*args):
+        per_seed = [a for a, axis in zip(args, seed_axes) if axis == 0]
+
+        def one(seed_args):
+            it = iter(seed_args)
+            return cells(*[next(it) if axis == 0 else a for a, axis in zip(args, seed_axes)])
+        return jax.lax.map(one, per_seed)
+    return mapped
 
 
 def held_out_segments(data: Dataset, segment_len: int, num: int, seed: int = 0):

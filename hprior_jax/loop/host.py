@@ -56,10 +56,9 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     `labelling`: where and how long a method that asks a person waits for answers
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
     `compile_ahead`: compile the later programs (evaluation, the method's events, other
-    chunk lengths) in a background thread from the start (`Engine.compile_run_ahead`), and
-    run the first phase's chunks by a program of that phase alone, which the main thread
-    compiles in seconds (`Engine._chunk_name`). Each chunk's perf records hold its wall
-    time parts; the first chunk's also `perf/first_step_s` (process start to first env step).
+    chunk lengths) in a background thread from the start (`Engine.compile_run_ahead`).
+    Each chunk's perf records hold its wall time by part; the first chunk's also
+    `perf/first_step_s` (process start to its first env step).
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
@@ -100,8 +99,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     try:
         engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
         if compile_ahead and max_chunks is None:  # a run cut short (tests) would compile
-            engine.first_phase_apart = True       # programs it never runs
-            engine.compile_run_ahead(rs, step)
+            engine.compile_run_ahead(rs, step)    # programs it never runs
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
             timer = _WallTimer(engine.compile_seconds)  # wall time per part, compiles apart
