@@ -4,8 +4,8 @@
 pebble --preset reduced` on one seed for 12000 steps (5000 random steps, evaluations at 5000
 and 10000, the first feedback round at 10000). Per repeat: `--no-compile-ahead` (before:
 every phase in one chunk program, later programs compiled when first needed) and the
-default (after: the random phase's own program first, everything else compiled in a
-background thread), each with a fresh persistent compilation cache (cold), then both again
+default (after: the same chunk program, everything else compiled in a background thread in
+the order the run needs it), each with a fresh persistent compilation cache (cold), then both again
 on their now-filled caches (warm). Writes benchmarks/results/compile_ahead.csv: seconds from
 process start to the first env step (perf/first_step_s), wall seconds of the whole run
 (process start to exit), the compile seconds the main thread spent or waited for
