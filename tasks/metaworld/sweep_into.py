@@ -12,8 +12,10 @@ scripted-policy episodes: contact census of 4 goal-observable scripted episodes 
     or one of the side slabs (x up to +-0.1, the centre strip ends at +-0.08);
   * the puck x the big table block under the slabs (1 pair): it is the floor of the hole,
     where the puck comes to rest (z = 0.02) after falling in.
-The lower inner table block (top at z = -0.053) is never reached (the big block covers it)
-and the floor is 0.9 m down: both dropped. The wrist geom (`right_hand`'s mesh, which
+  * the puck x the room's floor (1 pair; metaworld's plane at z = -0.913 as a 20 x 20 m box):
+    a puck pushed off the table lands there, as in metaworld (tested).
+The lower inner table block (top at z = -0.053) is never reached (the big block covers it):
+dropped. The wrist geom (`right_hand`'s mesh, which
 collides in metaworld) never touched anything in the census: it has no pair here.
 
 Reset: metaworld's `reset_model` draws the puck's x, y (rejecting draws within 0.15 of the
@@ -34,6 +36,23 @@ press the puck into the table top and the policy drags it back; 1 succeeds. It t
 arm's inertia and joint damping to do the same: the free hand (`arm=False`) followed the
 mocap into the hole and put the puck on the goal every time (return x2.12, success 100%,
 hand-mocap x0.10), with or without metaworld's constraint weights.
+
+These 20-episode numbers are one sample of a chaotic process: the return's SD is 1650-1850,
+so the mean's standard error is about 19%, and rounding alone changes the sample: adding the
+floor pair (never touched by these episodes) changes them from step 2-14 on by 1e-11 to 2e-7
+at first, with the same actions, and the 20-episode return read x1.17 with it (2026-12-03,
+another machine) where it had read x0.96 without. With 100 episodes a side
+(`--tasks sweep_into --episodes 100 --seed 1` -> `metaworld_dynamics_sweep_into_100.csv`), the
+floor kept: return 1933 vs 2085 (x0.93), success at step 500 27% vs 31%, hand-mocap 0.081 vs
+0.080 m (x1.01): all four targets met.
+
+Found in a SAC run's replay (the reward lab's dataset, 100 episodes): in 3 episodes the hand
+moved 5-8 cm in one step (the 99.9th percentile of a step is 1.6-2.0 cm) and in one it threw
+the puck off the table at about 6 m/s. Not a port artefact: metaworld's own env, set to the
+recorded states and given the recorded actions, makes the same steps (hand step 0.054 vs
+0.054 m, 0.077 vs 0.078 m): SAC drove the mocap 27-42 cm ahead of a hand held back by the
+table or puck, and the weld then swings the arm. Before the floor pair the thrown puck fell
+without end (z = -32.5 m by step 500) where metaworld's lands on its floor.
 """
 from __future__ import annotations
 
@@ -56,8 +75,14 @@ class SweepInto(SawyerTask):
         hand_init_pos=(0.0, 0.6, 0.2),
         # gripper x puck, gripper x the table-top slabs (tablelink collision geoms 2..5)
         object_geoms=(("obj", None), ("tablelink", (2, 3, 4, 5))),
-        # puck x hole floor (tablelink collision geom 0) and x the table-top slabs
-        extra_pairs=tuple(("objGeom", ("tablelink", i)) for i in (0, 2, 3, 4, 5)),
+        # puck x hole floor (tablelink collision geom 0) and x the table-top slabs, and x the
+        # room's floor (a puck pushed off the table lands there, as in metaworld)
+        extra_pairs=tuple(("objGeom", ("tablelink", i)) for i in (0, 2, 3, 4, 5))
+        + (("objGeom", "floor_block"),),
+        # metaworld's floor plane (top z = -0.913) as a 20 x 20 m block: a box-box pair joins
+        # the scene's other 24 box-box pairs, where a plane-box pair cost the MJX step 19%
+        fixtures=(("floor_block", "world", "BOX", (10.0, 10.0, 0.1), (0, 0, -1.013),
+                   (1, 0, 0, 0), "floor"),),
     )
     obj_low = (-0.1, 0.6, 0.02)
     obj_high = (0.1, 0.7, 0.02)
