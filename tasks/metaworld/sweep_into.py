@@ -44,7 +44,8 @@ at first, with the same actions, and the 20-episode return read x1.17 with it (2
 another machine) where it had read x0.96 without. With 100 episodes a side
 (`--tasks sweep_into --episodes 100 --seed 1` -> `metaworld_dynamics_sweep_into_100.csv`), the
 floor kept: return 1933 vs 2085 (x0.93), success at step 500 27% vs 31%, hand-mocap 0.081 vs
-0.080 m (x1.01): all four targets met.
+0.080 m (x1.01): all four targets met; the scene before the floor pair, the same 100
+episodes: 1915 (x0.92), 26%, 0.081 m.
 
 Found in a SAC run's replay (the reward lab's dataset, 100 episodes): in 3 episodes the hand
 moved 5-8 cm in one step (the 99.9th percentile of a step is 1.6-2.0 cm) and in one it threw
