@@ -333,15 +333,14 @@ class Lab:
             progress("world model, mean over seeds: " + ", ".join(
                 f"{k} {np.mean([d[k] for d in self.diagnostics]):.3g}"
                 for k in self.diagnostics[0] if k != "seed"))
-        # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
-        over_cells = _over_cells
         # one-shot runs have only a first round: no candidate pool for the uncertainty rules
         feed = "uniform" if cfg.one_shot else cfg.feed_type
-        rounds_fn = lambda q, b: over_cells(partial(self.round, queries=q, batch_size=b,
-                                                    feed=feed),
-                                         (0, 0, None, None) + (None,) * 5,
-                                         (0, None, 0, 0) + (None,) * 5)
-        predict_fn = over_cells(self.predict, (0, None), (0, None))
+        # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
+        rounds_fn = lambda q, b: _over_cells(partial(self.round, queries=q, batch_size=b,
+                                                     feed=feed),
+                                             (0, 0, None, None) + (None,) * 5,
+                                             (0, None, 0, 0) + (None,) * 5)
+        predict_fn = _over_cells(self.predict, (0, None), (0, None))
         if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
             schedule = [[(b, b)] for b in cfg.budgets]
         else:
@@ -390,12 +389,10 @@ def _over_cells(fn, seed_axes, rule_axes):
         return jax.vmap(cells, seed_axes)
 
     def mapped(*args):
-        per_seed = [a for a, axis in zip(args, seed_axes) if axis == 0]
-
-        def one(seed_args):
-            it = iter(seed_args)
-            return cells(*[next(it) if axis == 0 else a for a, axis in zip(args, seed_axes)])
-        return jax.lax.map(one, per_seed)
+        # lax.map slices the per-seed arguments; the shared ones ride as None (no leaves)
+        per_seed = tuple(a if axis == 0 else None for a, axis in zip(args, seed_axes))
+        return jax.lax.map(lambda sliced: cells(*[
+            s if axis == 0 else a for a, s, axis in zip(args, sliced, seed_axes)]), per_seed)
     return mapped
 
 

@@ -15,8 +15,8 @@ scripted-policy episodes: contact census of 4 goal-observable scripted episodes 
   * the puck x the room's floor (1 pair; metaworld's plane at z = -0.913 as a 20 x 20 m box):
     a puck pushed off the table lands there, as in metaworld (tested).
 The lower inner table block (top at z = -0.053) is never reached (the big block covers it):
-dropped. The wrist geom (`right_hand`'s mesh, which
-collides in metaworld) never touched anything in the census: it has no pair here.
+dropped. The wrist geom (`right_hand`'s mesh, which collides in metaworld) never touched
+anything in the census: it has no pair here.
 
 Reset: metaworld's `reset_model` draws the puck's x, y (rejecting draws within 0.15 of the
 goal in x-y; the goal half of the random vector is unused, the goal is fixed) and moves the

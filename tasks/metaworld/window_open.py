@@ -5,8 +5,9 @@ the handle and pushes it sideways (+x) with the *wrist* and the left claw; the s
 stops when its stile meets the frame's side post (slide 0.203; joint range [0, 0.2]).
 Contacts (16 pairs): the 4 gripper geoms x the 3 handle capsules of the sliding pane
 `windowb_a` (12), the wrist (a convex hull of 32 of the gripper-base mesh's points, see
-sawyer.py) x the same 3 capsules, and the pane's stile x the frame post (the end stop). Removed: glass, the fixed
-pane and the rest of the frame (off the solution's path), the arm's geoms (sawyer.py).
+sawyer.py) x the same 3 capsules, and the pane's stile x the frame post (the end stop).
+Removed: glass, the fixed pane and the rest of the frame (off the solution's path), the
+arm's geoms (sawyer.py).
 The first port (claws x handle only) let the hand ride over the handle after the push and
 drag the pane back: success at step 500 25% against metaworld's 100%.
 
