@@ -412,7 +412,7 @@ def _report(argv: list[str]) -> int:
 
 def _reward_lab(argv: list[str]) -> int:
     from hprior_jax.lab import dataset as datasets
-    from hprior_jax.lab.sweep import rules
+    from hprior_jax.lab.sweep import default_rules, rules
 
     parser = argparse.ArgumentParser(
         prog="hprior reward-lab",
@@ -442,7 +442,10 @@ def _reward_lab(argv: list[str]) -> int:
                              "(`hprior label --from-lab`) instead of the teacher's labels; "
                              "the dataset is the one the folder names")
     parser.add_argument("--rules", nargs="+", default=None,
-                        help=f"default: all ({' '.join(rules())})")
+                        help=f"default: {' '.join(default_rules())}; also PRIOR's ablations "
+                             f"({' '.join(r for r in rules() if r not in default_rules())}); "
+                             "RULE@LAMBDA gives a rule its own λ (prior@1 prior@25: a λ "
+                             "sweep in one program)")
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--budgets", nargs="+", type=int, default=[25, 100, 400])
     parser.add_argument("--queries-per-round", type=int, default=None,

@@ -67,6 +67,17 @@ def test_masked_steps_get_zero_and_alpha_renormalises():
     np.testing.assert_array_equal(_credit(a, 4, step_mask=jnp.zeros(4, bool)), np.zeros(4))
 
 
+def test_without_the_own_step_alpha_renormalises_over_the_others():
+    a = _attn(4)
+    a[0, 0, 7] = [0.1, 0.1, 0.1, 0.1, 0.2, 0.0, 0.2, 0.2]  # 0.4 on the own step (s_3, a_3)
+    np.testing.assert_allclose(_credit(a, 4, own_step=False), [1 / 3, 1 / 3, 1 / 3, 0], atol=1e-6)
+    # with padding the own step is the last valid one (2, query row 5), not the last one
+    a[0, 0, 5] = [0.1, 0.1, 0.1, 0.1, 0.3, 0.3, 0.0, 0.0]
+    mask = jnp.array([True, True, True, False])
+    np.testing.assert_allclose(_credit(a, 4, step_mask=mask, own_step=False), [0.5, 0.5, 0, 0],
+                               atol=1e-6)
+
+
 def test_state_vs_action_query_rows():
     a = _attn(4)
     a[0, 0, 6, 0] = 1.0  # s_3's row -> s_0

@@ -44,6 +44,27 @@ def test_world_model_schedule(tmp_path):
     assert rvar.event_steps() == [40, 80, 120, 160]  # uniform α: no world model to train
 
 
+def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkeypatch):
+    """--prior.exclude-own-step: every stored pair's α is 0 on its last step and still sums
+    to 1; --prior.clip-targets: the round's prior term is built to clip (prior_term's clip
+    itself is tested in test_prior_loss)."""
+    import hprior_jax.methods.prior as prior_method
+
+    clips = []
+    real_term = prior_method.prior_term
+    monkeypatch.setattr(prior_method, "prior_term",
+                        lambda *a, clip=False: clips.append(clip) or real_term(*a, clip=clip))
+    cfg = _cfg(tmp_path, "ablated")
+    cfg = dataclasses.replace(cfg, prior=dataclasses.replace(cfg.prior, exclude_own_step=True,
+                                                             clip_targets=True))
+    rs = _run(cfg)
+    count = int(rs.method.prefs.count[0])
+    assert count > 0 and clips and all(clips)
+    for alpha in (rs.method.ext.credit.alpha1[0, :count], rs.method.ext.credit.alpha2[0, :count]):
+        np.testing.assert_array_equal(np.asarray(alpha[:, -1]), 0.0)
+        np.testing.assert_allclose(np.asarray(alpha).sum(-1), 1.0, rtol=1e-5)
+
+
 class _Runs(dict):
     """name -> (cfg, final state, run dir), each run on first use (the fast suite needs only
     PRIOR's)."""

@@ -37,6 +37,18 @@ def test_targets_redistribute_each_members_return(member_alpha):
                                (np.abs(alpha * r.sum(-1, keepdims=True)) > 1).mean(), rtol=1e-6)
 
 
+def test_clipped_targets_stay_in_the_reward_range_and_clip_may_be_traced():
+    r = jnp.asarray([[[0.9, 0.9, 0.9, -0.1]]])  # R̂ = 2.6
+    alpha = jnp.asarray([[0.5, 0.3, 0.2, 0.0]])  # targets 1.3, 0.78, 0.52, 0
+    np.testing.assert_allclose(L.prior_targets(r, alpha), [[[1.3, 0.78, 0.52, 0.0]]], rtol=1e-6)
+    np.testing.assert_allclose(L.prior_targets(r, alpha, True), [[[1.0, 0.78, 0.52, 0.0]]],
+                               rtol=1e-6)
+    by_flag = jax.jit(lambda c: L.prior_loss(r, alpha, clip=c)[0])
+    assert by_flag(True) == pytest.approx(np.mean((np.array([0.9, 0.9, 0.9, -0.1])
+                                                   - [1.0, 0.78, 0.52, 0.0]) ** 2))
+    assert by_flag(False) == pytest.approx(float(L.prior_loss(r, alpha)[0]))
+
+
 def test_prior_loss_matches_numpy_and_ignores_masked_segments():
     rng = np.random.default_rng(1)
     r = rng.normal(size=(K, 5, T)).astype(np.float32)

@@ -12,14 +12,14 @@ from scipy import stats
 from hprior_jax.lab import metrics
 from hprior_jax.lab.dataset import Dataset, heldout_pairs, split_episodes
 from hprior_jax.lab.learn import Lab, LabConfig
-from hprior_jax.lab.sweep import rules
+from hprior_jax.lab.sweep import default_rules, lab_config, rules
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
 from hprior_jax.prior.world_model import WorldModelConfig
 
 T = 10  # segment length
-ALL = list(rules())
+ALL = default_rules()
 quiet = dict(progress=lambda *_: None)
 
 
@@ -70,6 +70,42 @@ def test_rules_are_the_registered_reward_learners_and_the_controls():
     learners = [n for n in registry.names() if registry.get(n).lab_credit is not None]
     assert ALL == learners + ["positional", "oracle"]
     assert registry.REFERENCE not in ALL  # SAC learns no reward
+    assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped"]  # asked for by name
+
+
+def test_ablations_and_lambdas_are_rules_of_one_lab(data):
+    cfg = lab_config(dataclasses.replace(data, task="toy_point"), "smoke",
+                     ["pebble", "prior@0", "prior", "prior_clipped", "prior_no_own_step@25"])
+    assert cfg.credits == ("none", "attention", "attention", "attention",
+                           "attention_no_own_step")
+    assert cfg.clips == (False, False, False, True, False)
+    assert cfg.rule_lams == (None, 0.0, None, None, 25.0)
+    lab = Lab(cfg, dataclasses.replace(data, task="toy_point"))
+    np.testing.assert_array_equal(lab.lams, [0, 0, cfg.lam, cfg.lam, 25])
+    for bad, match in ((["pebble@5"], "no prior term"), (["prior@x"], "RULE@LAMBDA"),
+                       (["prior", "prior"], "named twice")):
+        with pytest.raises(ValueError, match=match):
+            lab_config(dataclasses.replace(data, task="toy_point"), "smoke", bad)
+
+
+@pytest.mark.slow  # CI time (75 s)
+def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_change_the_reward(data):
+    """prior@0 stores α but weighs it by 0: it must train exactly PEBBLE's reward (same
+    queries, labels and weights). Leaving out the own step changes the credit and so the
+    reward; clipping changes it where targets leave [-1, 1], which on this task the oracle
+    credit's do (the tiny world model's α is near uniform: its targets stay in range)."""
+    names = ("pebble", "prior@0", "prior", "prior_no_own_step", "oracle", "oracle clipped")
+    cfg = tiny(rules=names, credits=("none", "attention", "attention", "attention_no_own_step",
+                                     "oracle", "oracle"),
+               rule_lams=(None, 0.0, None, None, None, None),
+               clips=(False,) * 5 + (True,), seeds=(0,), budgets=(20,))
+    cells = {rule: cell for (_, rule, _), cell in by_cell(Lab(cfg, data).run(**quiet)).items()}
+    pred = {n: cells[n]["prediction"] for n in names}
+    np.testing.assert_array_equal(pred["prior@0"], pred["pebble"])
+    assert cells["prior@0"]["prior_loss"] > 0  # computed, weighed by 0
+    assert cells["oracle"]["target_out_of_range"] > 0
+    for ablated, base in (("prior_no_own_step", "prior"), ("oracle clipped", "oracle")):
+        assert np.abs(pred[ablated] - pred[base]).mean() > 1e-3, ablated
 
 
 def test_rounds_land_on_every_budget():

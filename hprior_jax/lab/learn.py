@@ -8,11 +8,15 @@ decides the credit α of each stored pair:
   none           PEBBLE: cross-entropy only (λ = 0)
   attention      PRIOR: the world model's attention credit (the RL loop's α)
   attention_nrp  PRIOR-NRP: the same α min-max normalised and softmaxed (appendix eq. 9)
+  attention_no_own_step  ablation: attention α without the query's own (last) step
   uniform        RVAR: 1/|σ|
   positional     control: the mean attention α at each position, the same for every segment
                  (what is left of α without state information)
   oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
                  bound for any credit rule; the only rule that reads true rewards)
+
+A rule may also clip its targets α_t·R̂ to the reward's range and have its own λ (`clips`,
+`rule_lams`): PRIOR's ablations and a λ sweep then run side by side, as rules of one program.
 
 Budgets are checkpoints of one run per cell: rounds of `queries_per_round`, clipped so the
 label count lands on every budget (for budgets 25 and 100 at 10 per round: 10, 10, 5, then 10
@@ -52,8 +56,12 @@ from hprior_jax.prior.attention import segment_credit
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
-CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle")
+CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
+           "attention_no_own_step")
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
+# lab rules that are `--algo prior` with a flag: (credit, targets clipped)
+ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False),  # --prior.exclude-own-step
+             "prior_clipped": ("attention", True)}  # --prior.clip-targets
 
 
 @dataclass(frozen=True)
@@ -61,6 +69,8 @@ class LabConfig:
     rules: tuple[str, ...]  # rule names, in report order
     credits: tuple[str, ...]  # the credit of each rule (CREDITS)
     lam: float  # λ of every rule with a credit (the RL presets': 5 DMC, 1000 MetaWorld)
+    clips: tuple[bool, ...] = ()  # per rule: targets clipped to [-1, 1] (empty: none)
+    rule_lams: tuple[float | None, ...] = ()  # per rule: its own λ instead of `lam` (None: lam)
     budgets: tuple[int, ...] = (25, 100, 400)
     queries_per_round: int = 10
     feed_type: str = "disagreement"
@@ -80,6 +90,9 @@ class LabConfig:
     def __post_init__(self):
         if len(self.rules) != len(self.credits) or not self.rules:
             raise ValueError("give one credit per rule")
+        for name in ("clips", "rule_lams"):
+            if len(getattr(self, name)) not in (0, len(self.rules)):
+                raise ValueError(f"give one of {name} per rule, or none")
         bad = set(self.credits) - set(CREDITS)
         if bad:
             raise ValueError(f"unknown credit {sorted(bad)}; available: {', '.join(CREDITS)}")
@@ -90,7 +103,8 @@ class LabConfig:
 
     @property
     def needs_world_model(self) -> bool:
-        return bool({"attention", "attention_nrp", "positional"} & set(self.credits))
+        return bool({"attention", "attention_nrp", "attention_no_own_step", "positional"}
+                    & set(self.credits))
 
     def rounds(self) -> list[tuple[int, int | None]]:
         """(queries, budget reached after it or None) of every round, round by round."""
@@ -162,8 +176,10 @@ class Lab:
         self.T = data.segment_len
         self.tx = make_optimizer(cfg.preference)
         self.credit_index = jnp.asarray([CREDITS.index(c) for c in cfg.credits], jnp.int32)
-        self.lams = jnp.asarray([0.0 if c == "none" else cfg.lam for c in cfg.credits],
-                                jnp.float32)
+        lams = cfg.rule_lams or (None,) * len(cfg.rules)
+        self.lams = jnp.asarray([0.0 if c == "none" else cfg.lam if lam is None else lam
+                                 for c, lam in zip(cfg.credits, lams)], jnp.float32)
+        self.clips = jnp.asarray(cfg.clips or (False,) * len(cfg.rules))
         d = data
         # passed to the programs as arguments (not baked in as constants), so labs on data
         # of the same shapes share compiled programs
@@ -211,19 +227,22 @@ class Lab:
         """α[B, T] of segments under the rule `credit_id` (an index into CREDITS)."""
         uniform = rvar_alpha(true_r)  # 1/T at every step (RVAR's credit)
         if ctx.wm_params is None:
-            attention = uniform
+            attention = no_own_step = uniform
         else:
-            attention = segment_credit(ctx.wm_params, obs, act, self.cfg.world_model,
-                                       query=self.cfg.attention_query)
+            attention, no_own_step = (
+                segment_credit(ctx.wm_params, obs, act, self.cfg.world_model,
+                               query=self.cfg.attention_query, own_step=own)
+                for own in (True, False))
         share = jnp.maximum(true_r, 0.0)
         total = share.sum(-1, keepdims=True)
         oracle = jnp.where(total > 1e-8, share / jnp.maximum(total, 1e-8), uniform)
         options = {"none": uniform, "attention": attention,
                    "attention_nrp": nrp_alpha(attention), "uniform": uniform,
-                   "positional": jnp.broadcast_to(ctx.profile, true_r.shape), "oracle": oracle}
+                   "positional": jnp.broadcast_to(ctx.profile, true_r.shape), "oracle": oracle,
+                   "attention_no_own_step": no_own_step}
         return jnp.stack([options[c] for c in CREDITS])[credit_id]
 
-    def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, num_queries, first,
+    def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, clip, num_queries, first,
               train: Episodes, mean_return, given: GivenLabels | None, *, queries: int,
               batch_size: int, feed: str):
         """Query -> teacher -> credit of the new pairs -> reward update on every stored pair.
@@ -259,7 +278,7 @@ class Lab:
                                       reward_cfg=cfg.reward,
                                       cfg=dataclasses.replace(cfg.preference,
                                                               batch_size=batch_size),
-                                      terms=(prior_term(lam, credit, "raw"),))
+                                      terms=(prior_term(lam, credit, "raw", clip),))
         metrics = {"labels": prefs.count, "epochs": m["reward/epochs"],
                    "train_acc": m["reward/train_acc"], "ce": m["reward/loss"],
                    "prior_loss": m["prior/loss"],
@@ -338,8 +357,8 @@ class Lab:
         # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
         rounds_fn = lambda q, b: _over_cells(partial(self.round, queries=q, batch_size=b,
                                                      feed=feed),
-                                             (0, 0, None, None) + (None,) * 5,
-                                             (0, None, 0, 0) + (None,) * 5)
+                                             (0, 0, None, None, None) + (None,) * 5,
+                                             (0, None, 0, 0, 0) + (None,) * 5)
         predict_fn = _over_cells(self.predict, (0, None), (0, None))
         if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
             schedule = [[(b, b)] for b in cfg.budgets]
@@ -352,7 +371,7 @@ class Lab:
             queries = capacity if cfg.one_shot else cfg.queries_per_round
             rounds_labels = np.cumsum([n for n, _ in rounds])  # labels stored after each
             for i, (n, budget) in enumerate(rounds):
-                args = (cells, ctx, self.credit_index, self.lams, jnp.int32(n),
+                args = (cells, ctx, self.credit_index, self.lams, self.clips, jnp.int32(n),
                         jnp.asarray(i == 0), self.train, self.mean_return, self.given)
                 batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
                 fn = self._compiled(f"round/{queries}/batch{batch}", rounds_fn(queries, batch),
@@ -420,5 +439,5 @@ def minibatch_size(labels: int, batch_size: int) -> int:
 
 
 # LabConfig fields that reach the programs as arguments or only the host schedule
-_ARGUMENTS = ("rules", "credits", "lam", "seeds", "budgets")
+_ARGUMENTS = ("rules", "credits", "lam", "clips", "rule_lams", "seeds", "budgets")
 _PROGRAMS: dict = {}  # compiled lab programs of this process (see Lab._compiled)

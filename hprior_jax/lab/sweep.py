@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hprior_jax.lab.dataset import Dataset
-from hprior_jax.lab.learn import CONTROLS, GivenLabels, Lab, LabConfig
+from hprior_jax.lab.learn import ABLATIONS, CONTROLS, GivenLabels, Lab, LabConfig
 from hprior_jax.lab.metrics import reward_quality
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -26,9 +26,26 @@ from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
 
 def rules() -> dict[str, str]:
     """{rule: credit}: every registered method that learns a reward from preferences, in
-    the registry's order, then the lab's controls."""
+    the registry's order, then the lab's controls, then PRIOR's ablations."""
     methods = {n: registry.get(n).lab_credit for n in registry.names()}
-    return {**{n: c for n, c in methods.items() if c is not None}, **CONTROLS}
+    return {**{n: c for n, c in methods.items() if c is not None}, **CONTROLS,
+            **{n: credit for n, (credit, _) in ABLATIONS.items()}}
+
+
+def default_rules() -> list[str]:
+    """The default sweep: every rule but the ablations."""
+    return [r for r in rules() if r not in ABLATIONS]
+
+
+def parse_rule(name: str) -> tuple[str, float | None]:
+    """"prior@25" -> ("prior", 25.0): a rule with its own λ; "prior" -> ("prior", None)."""
+    base, at, lam = name.partition("@")
+    if not at:
+        return name, None
+    try:
+        return base, float(lam)
+    except ValueError:
+        raise ValueError(f"rule {name!r}: write RULE@LAMBDA with a number, e.g. prior@25")
 
 
 def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20,
@@ -38,10 +55,16 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     from hprior_jax import presets
 
     known = rules()
-    rule_names = list(rule_names or known)
-    unknown = [r for r in rule_names if r not in known]
+    rule_names = list(rule_names or default_rules())
+    parsed = [parse_rule(r) for r in rule_names]
+    unknown = [r for r, _ in parsed if r not in known]
     if unknown:
         raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
+    if len(set(rule_names)) < len(rule_names):
+        raise ValueError(f"a rule is named twice: {rule_names}")
+    without_term = [r for r, lam in parsed if lam is not None and known[r] == "none"]
+    if without_term:
+        raise ValueError(f"{without_term} train no prior term: @LAMBDA has nothing to weigh")
     if teacher not in TEACHERS:
         raise ValueError(f"unknown teacher {teacher!r}; available: {', '.join(TEACHERS)}")
     if TEACHERS[teacher].human:
@@ -58,8 +81,10 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     first_round = rl.num_seed_steps + p.num_unsup_steps
     updates = max(0, (data.info.get("steps", 0) - first_round) // prior.wm_every)
     return LabConfig(
-        rules=tuple(rule_names), credits=tuple(known[r] for r in rule_names),
-        lam=prior.lam if lam is None else lam, budgets=tuple(budgets),
+        rules=tuple(rule_names), credits=tuple(known[r] for r, _ in parsed),
+        lam=prior.lam if lam is None else lam,
+        clips=tuple(r in ABLATIONS and ABLATIONS[r][1] for r, _ in parsed),
+        rule_lams=tuple(lam for _, lam in parsed), budgets=tuple(budgets),
         queries_per_round=queries_per_round or p.queries_per_round,
         feed_type=feed_type or p.feed_type, large_batch=p.large_batch, one_shot=one_shot,
         seeds=tuple(range(seeds)) if isinstance(seeds, int) else tuple(seeds),

@@ -59,6 +59,12 @@ class PriorConfig:
     """Dynamics-model gradient steps every `wm_every` env steps (not given by the paper)."""
     attention_query: Literal["action", "state"] = "action"
     """Which final-step token's attention row is read (see prior/attention.py for why action)."""
+    exclude_own_step: bool = False
+    """Ablation (not in the paper): α without the query's own (last) step, renormalised over
+    the others. In the reduced cheetah runs that step held about a third of α's mass."""
+    clip_targets: bool = False
+    """Ablation (not in the paper): the targets α_t·R̂ clipped to [-1, 1], the tanh reward's
+    range; unclipped, 1-12% of them were out of reach in the reduced cheetah runs."""
     # world model sizes (TWM defaults; appendix Table 5 sets sequence = memory = segment length)
     wm_batch: int = 100
     wm_latent: int = 32
@@ -168,10 +174,11 @@ class WorldModelPrior(Extension):
 
     def reward_terms(self, rs, ms: PebbleState):
         """α for every stored pair from the current world model, then the prior term."""
+        p = self.prior_cfg
         credit = pair_credit(ms.ext.wm.params, ms.prefs, self.wm_cfg, credit=ms.ext.credit,
-                             query=self.prior_cfg.attention_query)
+                             query=p.attention_query, own_step=not p.exclude_own_step)
         ms = ms.replace(ext=ms.ext.replace(credit=credit))
-        return (prior_term(ms.ext.lam, credit, self.variant),), ms
+        return (prior_term(ms.ext.lam, credit, self.variant, clip=p.clip_targets),), ms
 
     def round_metrics(self, ms: PebbleState, reward_cfg) -> dict:
         """Attention entropy (normalised by log T: 1 = uniform) and the fraction of targets

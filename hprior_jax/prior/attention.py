@@ -31,6 +31,8 @@ Choices where the paper is ambiguous (one reason each):
 """
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 
@@ -43,13 +45,16 @@ _QUERY_OFFSET = {"state": 0, "action": 1}
 
 
 def credit_from_attention(attn: jax.Array, num_steps: int, *, query: str = "action",
-                          step_mask: jax.Array | None = None) -> jax.Array:
+                          step_mask: jax.Array | None = None, own_step: bool = True) -> jax.Array:
     """attn[L, H, Tq, Tk] (one sequence) -> α[T], T = num_steps.
 
     Layout: the last 2T keys are the segment's tokens s_0, a_0, ..., s_{T-1}, a_{T-1} (earlier keys,
     e.g. XL memory, are ignored) and the last Tq queries are the last Tq of those tokens. The query
     read is the `query` token of the last valid step (last True of `step_mask`; padded steps must
     not come before real ones if Tq < 2T). α is zero on masked steps, non-negative, sums to 1.
+    `own_step=False` (an ablation): α is also zero on the query's own step, the last valid one,
+    whose share (α_T ≈ 0.32 in the reduced cheetah runs) holds the query's attention to its own
+    tokens.
     """
     if query not in _QUERY_OFFSET:
         raise ValueError(f"query={query!r}; choose 'action' or 'state'")
@@ -62,6 +67,8 @@ def credit_from_attention(attn: jax.Array, num_steps: int, *, query: str = "acti
     row = tq - 2 * t + 2 * last + _QUERY_OFFSET[query]
     a = jax.lax.dynamic_index_in_dim(attn, row, axis=2, keepdims=False)  # [L, H, Tk]
     a = a.mean(axis=(0, 1))[tk - 2 * t:]  # mean over layers and heads; segment keys only
+    if not own_step:
+        mask = mask & (jnp.arange(t) != last)
     alpha = a.reshape(t, 2).sum(-1) * mask
     return alpha / jnp.maximum(alpha.sum(), jnp.finfo(alpha.dtype).tiny)
 
@@ -76,16 +83,17 @@ def segment_attention(params: wm.WorldModelParams, obs: jax.Array, act: jax.Arra
 
 def segment_credit(params: wm.WorldModelParams, obs: jax.Array, act: jax.Array,
                    cfg: wm.WorldModelConfig, *, query: str = "action",
-                   step_mask: jax.Array | None = None) -> jax.Array:
+                   step_mask: jax.Array | None = None, own_step: bool = True) -> jax.Array:
     """α[B, T] for segments obs[B, T, ds], act[B, T, da] (step_mask[B, T] optional).
 
     Padded steps should be at the end: under causal attention the real tokens then never see them.
     """
     t = obs.shape[1]
     attn = segment_attention(params, obs, act, cfg)
+    credit = partial(credit_from_attention, num_steps=t, query=query, own_step=own_step)
     if step_mask is None:
-        return jax.vmap(lambda a: credit_from_attention(a, t, query=query))(attn)
-    return jax.vmap(lambda a, m: credit_from_attention(a, t, query=query, step_mask=m))(attn, step_mask)
+        return jax.vmap(credit)(attn)
+    return jax.vmap(lambda a, m: credit(a, step_mask=m))(attn, step_mask)
 
 
 def autoregressive_credit(params: wm.WorldModelParams, obs: jax.Array, act: jax.Array,
@@ -120,7 +128,8 @@ def autoregressive_credit(params: wm.WorldModelParams, obs: jax.Array, act: jax.
 
 
 def pair_credit(params: wm.WorldModelParams, store: PreferenceStore, cfg: wm.WorldModelConfig, *,
-                chunk: int = 50, query: str = "action", credit: PairCredit | None = None) -> PairCredit:
+                chunk: int = 50, query: str = "action", credit: PairCredit | None = None,
+                own_step: bool = True) -> PairCredit:
     """α for both segments of every stored pair (rows 0..count-1), `chunk` pairs per forward.
 
     Cost scales with `count`, not capacity. Rows >= count keep their old value (`credit`, or the
@@ -138,7 +147,7 @@ def pair_credit(params: wm.WorldModelParams, store: PreferenceStore, cfg: wm.Wor
         take = lambda x: jax.lax.dynamic_slice_in_dim(x, start, chunk, axis=0)
         obs = jnp.concatenate([take(store.obs1), take(store.obs2)], axis=0)
         act = jnp.concatenate([take(store.act1), take(store.act2)], axis=0)
-        alpha = segment_credit(params, obs, act, cfg, query=query)
+        alpha = segment_credit(params, obs, act, cfg, query=query, own_step=own_step)
         real = (start + jnp.arange(chunk) < store.count)[:, None]
 
         def put(dst, src):
