@@ -54,7 +54,9 @@ def tiny(**kw) -> LabConfig:
     known = rules()
     base = dict(rules=tuple(ALL), credits=tuple(known[r] for r in ALL), lam=5.0,
                 budgets=(20, 50), queries_per_round=10, seeds=(0, 1),
-                reward=RewardConfig(hidden_sizes=(32, 32), ensemble_size=3),
+                # BISIM's head for the bisim rule (the other rules never read it)
+                reward=RewardConfig(hidden_sizes=(32, 32), ensemble_size=3,
+                                    next_embedding_head=True),
                 # 16-row minibatches: one round program per lab (the lab picks the smallest
                 # of 16/32/64/... that holds the labels, at most this)
                 preference=PreferenceConfig(max_epochs=100, lr=1e-3, batch_size=16),
@@ -71,6 +73,7 @@ def test_rules_are_the_registered_reward_learners_and_the_controls():
     assert ALL == learners + ["positional", "oracle"]
     assert registry.REFERENCE not in ALL  # SAC learns no reward
     assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped"]  # asked for by name
+    assert rules()["bisim"] == "bisimulation"
 
 
 def test_ablations_and_lambdas_are_rules_of_one_lab(data):
@@ -81,31 +84,63 @@ def test_ablations_and_lambdas_are_rules_of_one_lab(data):
     assert cfg.clips == (False, False, False, True, False)
     assert cfg.rule_lams == (None, 0.0, None, None, 25.0)
     lab = Lab(cfg, dataclasses.replace(data, task="toy_point"))
-    np.testing.assert_array_equal(lab.lams, [0, 0, cfg.lam, cfg.lam, 25])
-    for bad, match in ((["pebble@5"], "no prior term"), (["prior@x"], "RULE@LAMBDA"),
-                       (["prior", "prior"], "named twice")):
+    np.testing.assert_array_equal(lab.rule_args.lam, [0, 0, cfg.lam, cfg.lam, 25])
+    np.testing.assert_array_equal(lab.rule_args.clip, cfg.clips)
+    assert not cfg.reward.next_embedding_head  # BISIM's head only with a bisim rule
+    assert lab_config(dataclasses.replace(data, task="toy_point"), "smoke",
+                      ["pebble", "bisim"]).reward.next_embedding_head
+    for bad, match in ((["pebble@5"], "no prior term"), (["bisim@1"], "no prior term"),
+                       (["prior@x"], "RULE@LAMBDA"), (["prior", "prior"], "named twice")):
         with pytest.raises(ValueError, match=match):
             lab_config(dataclasses.replace(data, task="toy_point"), "smoke", bad)
 
 
-@pytest.mark.slow  # CI time (75 s)
-def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_change_the_reward(data):
+@pytest.mark.slow  # CI time (~100 s)
+def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_and_bisim_change_the_reward(
+        data):
     """prior@0 stores α but weighs it by 0: it must train exactly PEBBLE's reward (same
     queries, labels and weights). Leaving out the own step changes the credit and so the
     reward; clipping changes it where targets leave [-1, 1], which on this task the oracle
-    credit's do (the tiny world model's α is near uniform: its targets stay in range)."""
-    names = ("pebble", "prior@0", "prior", "prior_no_own_step", "oracle", "oracle clipped")
+    credit's do (the tiny world model's α is near uniform: its targets stay in range). The
+    bisim rule trains its term; the head it adds to every cell leaves PEBBLE's reward as it is
+    without it."""
+    names = ("pebble", "prior@0", "prior", "prior_no_own_step", "oracle", "oracle clipped",
+             "bisim")
     cfg = tiny(rules=names, credits=("none", "attention", "attention", "attention_no_own_step",
-                                     "oracle", "oracle"),
-               rule_lams=(None, 0.0, None, None, None, None),
-               clips=(False,) * 5 + (True,), seeds=(0,), budgets=(20,))
+                                     "oracle", "oracle", "bisimulation"),
+               rule_lams=(None, 0.0, None, None, None, None, None),
+               clips=(False,) * 5 + (True, False), seeds=(0,), budgets=(20,),
+               reward=RewardConfig(hidden_sizes=(32, 32), ensemble_size=3,
+                                   next_embedding_head=True))
     cells = {rule: cell for (_, rule, _), cell in by_cell(Lab(cfg, data).run(**quiet)).items()}
     pred = {n: cells[n]["prediction"] for n in names}
     np.testing.assert_array_equal(pred["prior@0"], pred["pebble"])
     assert cells["prior@0"]["prior_loss"] > 0  # computed, weighed by 0
     assert cells["oracle"]["target_out_of_range"] > 0
-    for ablated, base in (("prior_no_own_step", "prior"), ("oracle clipped", "oracle")):
+    for ablated, base in (("prior_no_own_step", "prior"), ("oracle clipped", "oracle"),
+                          ("bisim", "pebble")):
         assert np.abs(pred[ablated] - pred[base]).mean() > 1e-3, ablated
+    assert cells["bisim"]["bisim_loss"] > 0 and cells["bisim"]["bisim_grad_ratio"] > 0
+    assert cells["pebble"]["bisim_grad_ratio"] == 0  # computed, weighed by 0
+    alone = Lab(tiny(rules=("pebble",), credits=("none",), seeds=(0,), budgets=(20,),
+                     world_model=None), data).run(**quiet)
+    # another program: equal up to its rounding (<= 1e-5 in test_one_seed_equals_its_slot)
+    assert np.abs(alone[0]["prediction"] - pred["pebble"]).max() < 1e-4
+
+
+def test_bisim_transitions_from_episodes_never_cross_an_episode_end():
+    import jax
+
+    from hprior_jax.lab.learn import Episodes, episode_transitions
+
+    e, length = 5, 7
+    step = np.arange(e * length, dtype=np.float32).reshape(e, length, 1)  # obs = global step
+    eps = Episodes(obs=step, act=-step, reward=np.zeros((e, length), np.float32))
+    tr = jax.tree.map(np.asarray, episode_transitions(jax.random.PRNGKey(0), eps, 300, 4))
+    assert tr.obs.shape == (300, 4, 1) and tr.valid.all()
+    np.testing.assert_array_equal(tr.next_obs, tr.obs + 1)
+    np.testing.assert_array_equal(tr.next_act, -tr.next_obs)
+    assert set(np.unique(tr.obs % length)) == set(range(length - 1))  # every non-last step
 
 
 def test_rounds_land_on_every_budget():

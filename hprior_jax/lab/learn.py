@@ -9,6 +9,9 @@ decides the credit α of each stored pair:
   attention      PRIOR: the world model's attention credit (the RL loop's α)
   attention_nrp  PRIOR-NRP: the same α min-max normalised and softmaxed (appendix eq. 9)
   attention_no_own_step  ablation: attention α without the query's own (last) step
+  bisimulation   BISIM: no α (λ = 0); its bisimulation term instead (weight `bisim_lam`), on
+                 transitions drawn from the training episodes, as the RL loop draws them from
+                 the replay buffer
   uniform        RVAR: 1/|σ|
   positional     control: the mean attention α at each position, the same for every segment
                  (what is left of α without state information)
@@ -47,6 +50,7 @@ from flax import struct
 from hprior_jax.buffers import preferences
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
+from hprior_jax.pbrl.bisim import BisimTransitions, bisim_term
 from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_reward
 from hprior_jax.pbrl.query import pairs_at, select_queries
 from hprior_jax.pbrl.teacher import (TeacherConfig, TeacherOutput, compute_thresholds,
@@ -57,7 +61,9 @@ from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagno
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
-           "attention_no_own_step")
+           "attention_no_own_step", "bisimulation")
+NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
+BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
 # lab rules that are `--algo prior` with a flag: (credit, targets clipped)
 ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False),  # --prior.exclude-own-step
@@ -71,6 +77,9 @@ class LabConfig:
     lam: float  # λ of every rule with a credit (the RL presets': 5 DMC, 1000 MetaWorld)
     clips: tuple[bool, ...] = ()  # per rule: targets clipped to [-1, 1] (empty: none)
     rule_lams: tuple[float | None, ...] = ()  # per rule: its own λ instead of `lam` (None: lam)
+    bisim_lam: float = 0.5  # λ_bisim of the bisim rule (BISIM's default)
+    bisim_transitions: int = 4  # transitions per stored-pair row (BISIM's default)
+    discount: float = 0.99  # γ of the bisimulation target (SAC's, as in BISIM)
     budgets: tuple[int, ...] = (25, 100, 400)
     queries_per_round: int = 10
     feed_type: str = "disagreement"
@@ -100,6 +109,12 @@ class LabConfig:
             raise ValueError(f"budgets must be increasing positive label counts: {self.budgets}")
         if self.needs_world_model and self.world_model is None:
             raise ValueError("a rule with attention or positional credit needs a world model")
+        if self.needs_bisim and not self.reward.next_embedding_head:
+            raise ValueError("the bisim rule needs RewardConfig(next_embedding_head=True)")
+
+    @property
+    def needs_bisim(self) -> bool:
+        return "bisimulation" in self.credits
 
     @property
     def needs_world_model(self) -> bool:
@@ -130,6 +145,18 @@ class GivenLabels:
 
     def __len__(self) -> int:
         return len(self.labels)
+
+
+@struct.dataclass
+class RuleArgs:
+    """What tells one rule from another inside the program (arrays, vmapped over rules):
+    its credit (an index into CREDITS), λ of the prior term, whether its targets are clipped,
+    and the weight of the bisimulation term."""
+
+    credit: jax.Array
+    lam: jax.Array
+    clip: jax.Array
+    bisim_lam: jax.Array
 
 
 @struct.dataclass
@@ -175,11 +202,14 @@ class Lab:
         self.act_size = data.train_act.shape[-1]
         self.T = data.segment_len
         self.tx = make_optimizer(cfg.preference)
-        self.credit_index = jnp.asarray([CREDITS.index(c) for c in cfg.credits], jnp.int32)
         lams = cfg.rule_lams or (None,) * len(cfg.rules)
-        self.lams = jnp.asarray([0.0 if c == "none" else cfg.lam if lam is None else lam
-                                 for c, lam in zip(cfg.credits, lams)], jnp.float32)
-        self.clips = jnp.asarray(cfg.clips or (False,) * len(cfg.rules))
+        self.rule_args = RuleArgs(
+            credit=jnp.asarray([CREDITS.index(c) for c in cfg.credits], jnp.int32),
+            lam=jnp.asarray([0.0 if c in NO_PRIOR else cfg.lam if lam is None else lam
+                             for c, lam in zip(cfg.credits, lams)], jnp.float32),
+            clip=jnp.asarray(cfg.clips or (False,) * len(cfg.rules)),
+            bisim_lam=jnp.asarray([cfg.bisim_lam if c == "bisimulation" else 0.0
+                                   for c in cfg.credits], jnp.float32))
         d = data
         # passed to the programs as arguments (not baked in as constants), so labs on data
         # of the same shapes share compiled programs
@@ -239,10 +269,10 @@ class Lab:
         options = {"none": uniform, "attention": attention,
                    "attention_nrp": nrp_alpha(attention), "uniform": uniform,
                    "positional": jnp.broadcast_to(ctx.profile, true_r.shape), "oracle": oracle,
-                   "attention_no_own_step": no_own_step}
+                   "attention_no_own_step": no_own_step, "bisimulation": uniform}
         return jnp.stack([options[c] for c in CREDITS])[credit_id]
 
-    def round(self, cell: Cell, ctx: SeedContext, credit_id, lam, clip, num_queries, first,
+    def round(self, cell: Cell, ctx: SeedContext, rule: RuleArgs, num_queries, first,
               train: Episodes, mean_return, given: GivenLabels | None, *, queries: int,
               batch_size: int, feed: str):
         """Query -> teacher -> credit of the new pairs -> reward update on every stored pair.
@@ -267,18 +297,24 @@ class Lab:
                                  thresholds)
         keep = out.valid & pairs.mask
         both = lambda a, b: jnp.concatenate([a, b])
-        alpha = self.credit(ctx, credit_id, both(pairs.obs1, pairs.obs2),
+        alpha = self.credit(ctx, rule.credit, both(pairs.obs1, pairs.obs2),
                             both(pairs.act1, pairs.act2), both(pairs.true_r1, pairs.true_r2))
         slot = preferences.slots(cell.prefs, keep)
         credit = PairCredit(alpha1=preferences.put_rows(cell.credit.alpha1, alpha[:queries], slot),
                             alpha2=preferences.put_rows(cell.credit.alpha2, alpha[queries:], slot))
         prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
+        terms = (prior_term(rule.lam, credit, "raw", rule.clip),)
+        if cfg.needs_bisim:  # every rule computes it (weight 0 but the bisim rule's)
+            transitions = episode_transitions(jax.random.fold_in(k_train, BISIM_STREAM), train,
+                                              prefs.capacity, cfg.bisim_transitions)
+            terms += (bisim_term(rule.bisim_lam, transitions, reward_cfg=cfg.reward,
+                                 discount=cfg.discount),)
         params, opt, m = train_reward(cell.reward, cell.opt, prefs, k_train, tx=self.tx,
                                       reward_cfg=cfg.reward,
                                       cfg=dataclasses.replace(cfg.preference,
                                                               batch_size=batch_size),
-                                      terms=(prior_term(lam, credit, "raw", clip),))
+                                      terms=terms)
         metrics = {"labels": prefs.count, "epochs": m["reward/epochs"],
                    "train_acc": m["reward/train_acc"], "ce": m["reward/loss"],
                    "prior_loss": m["prior/loss"],
@@ -287,6 +323,9 @@ class Lab:
                    # of the rule's own credit (uniform for pebble, which does not use it)
                    "target_out_of_range": unreachable_targets(params, prefs, credit,
                                                               cfg.reward)}
+        if cfg.needs_bisim:
+            metrics |= {"bisim_loss": m["bisim/loss"],
+                        "bisim_grad_ratio": m["bisim/loss/grad_ratio"]}
         return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
 
     def _given(self, train: Episodes, given: GivenLabels):
@@ -357,8 +396,8 @@ class Lab:
         # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
         rounds_fn = lambda q, b: _over_cells(partial(self.round, queries=q, batch_size=b,
                                                      feed=feed),
-                                             (0, 0, None, None, None) + (None,) * 5,
-                                             (0, None, 0, 0, 0) + (None,) * 5)
+                                             (0, 0, None) + (None,) * 5,
+                                             (0, None, 0) + (None,) * 5)
         predict_fn = _over_cells(self.predict, (0, None), (0, None))
         if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
             schedule = [[(b, b)] for b in cfg.budgets]
@@ -371,7 +410,7 @@ class Lab:
             queries = capacity if cfg.one_shot else cfg.queries_per_round
             rounds_labels = np.cumsum([n for n, _ in rounds])  # labels stored after each
             for i, (n, budget) in enumerate(rounds):
-                args = (cells, ctx, self.credit_index, self.lams, self.clips, jnp.int32(n),
+                args = (cells, ctx, self.rule_args, jnp.int32(n),
                         jnp.asarray(i == 0), self.train, self.mean_return, self.given)
                 batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
                 fn = self._compiled(f"round/{queries}/batch{batch}", rounds_fn(queries, batch),
@@ -415,6 +454,20 @@ def _over_cells(fn, seed_axes, rule_axes):
     return mapped
 
 
+def episode_transitions(key: jax.Array, episodes: Episodes, capacity: int,
+                        per_row: int) -> BisimTransitions:
+    """BISIM's transitions from fixed episodes: `per_row` per stored-pair row, each a step
+    drawn uniformly (with replacement) among the steps that are not their episode's last, and
+    the step after it (what `pbrl.bisim.sample_transitions` draws from a replay buffer)."""
+    e, length = episodes.obs.shape[:2]
+    k_ep, k_step = jax.random.split(key)
+    ep = jax.random.randint(k_ep, (capacity, per_row), 0, e)
+    t = jax.random.randint(k_step, (capacity, per_row), 0, length - 1)
+    return BisimTransitions(obs=episodes.obs[ep, t], act=episodes.act[ep, t],
+                            next_obs=episodes.obs[ep, t + 1], next_act=episodes.act[ep, t + 1],
+                            valid=jnp.ones((capacity, per_row), bool))
+
+
 def held_out_segments(data: Dataset, segment_len: int, num: int, seed: int = 0):
     """`num` fixed segments of the held-out episodes and a random step order for each:
     (obs, act, true reward, perm), the inputs of prior.diagnostics."""
@@ -439,5 +492,5 @@ def minibatch_size(labels: int, batch_size: int) -> int:
 
 
 # LabConfig fields that reach the programs as arguments or only the host schedule
-_ARGUMENTS = ("rules", "credits", "lam", "clips", "rule_lams", "seeds", "budgets")
+_ARGUMENTS = ("rules", "credits", "lam", "clips", "rule_lams", "bisim_lam", "seeds", "budgets")
 _PROGRAMS: dict = {}  # compiled lab programs of this process (see Lab._compiled)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hprior_jax.lab.dataset import Dataset
-from hprior_jax.lab.learn import ABLATIONS, CONTROLS, GivenLabels, Lab, LabConfig
+from hprior_jax.lab.learn import ABLATIONS, CONTROLS, NO_PRIOR, GivenLabels, Lab, LabConfig
 from hprior_jax.lab.metrics import reward_quality
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -38,7 +38,7 @@ def default_rules() -> list[str]:
 
 
 def parse_rule(name: str) -> tuple[str, float | None]:
-    """"prior@25" -> ("prior", 25.0): a rule with its own λ; "prior" -> ("prior", None)."""
+    """RULE@LAMBDA -> (RULE, LAMBDA as a float): a rule with its own λ; RULE -> (RULE, None)."""
     base, at, lam = name.partition("@")
     if not at:
         return name, None
@@ -53,6 +53,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
                feed_type: str | None = None, teacher: str = "oracle", one_shot: bool = False,
                lam: float | None = None) -> LabConfig:
     from hprior_jax import presets
+    from hprior_jax.methods.bisim import BisimConfig
 
     known = rules()
     rule_names = list(rule_names or default_rules())
@@ -62,7 +63,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
     if len(set(rule_names)) < len(rule_names):
         raise ValueError(f"a rule is named twice: {rule_names}")
-    without_term = [r for r, lam in parsed if lam is not None and known[r] == "none"]
+    without_term = [r for r, lam in parsed if lam is not None and known[r] in NO_PRIOR]
     if without_term:
         raise ValueError(f"{without_term} train no prior term: @LAMBDA has nothing to weigh")
     if teacher not in TEACHERS:
@@ -89,7 +90,12 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         feed_type=feed_type or p.feed_type, large_batch=p.large_batch, one_shot=one_shot,
         seeds=tuple(range(seeds)) if isinstance(seeds, int) else tuple(seeds),
         reward=RewardConfig(hidden_sizes=(p.reward_hidden,) * p.reward_depth,
-                            ensemble_size=p.ensemble_size),
+                            ensemble_size=p.ensemble_size,
+                            # with BISIM's rule every cell has BISIM's head: the others never
+                            # read it, and their reward layers are the same with or without it
+                            next_embedding_head="bisimulation" in (known[r] for r, _ in parsed)),
+        bisim_lam=BisimConfig().lam, bisim_transitions=BisimConfig().transitions_per_pair,
+        discount=rl.sac.discount,
         preference=PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
                                     lr=p.reward_lr),
         teacher=TEACHERS[teacher],

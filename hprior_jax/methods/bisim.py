@@ -69,4 +69,4 @@ def spec(name: str) -> MethodSpec:
         sections={"pebble": PebbleConfig, "bisim": BisimConfig},
         preset=lambda task, preset, sac: {**pebble_preset(task, preset, sac),
                                           "bisim": BisimConfig()},
-        lab_credit=None)
+        lab_credit="bisimulation")

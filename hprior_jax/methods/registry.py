@@ -43,9 +43,10 @@ class MethodSpec:
     has_world_model: bool = False  # attention maps need one
     lab_credit: str | None = None
     """How the method's reward update enters the reward-learning lab (`hprior reward-lab`): the
-    credit α of its prior term (hprior_jax.lab.learn.CREDITS; "none" = cross-entropy only).
-    None: not a lab rule (SAC learns no reward; RUNE learns PEBBLE's reward and changes only the
-    agent's; MRN's meta step needs the agent's critic; SURF and BISIM are not yet rules)."""
+    credit α of its prior term (hprior_jax.lab.learn.CREDITS; "none" = cross-entropy only;
+    "bisimulation" = BISIM's bisimulation term instead of a prior). None: not a lab rule (SAC learns
+    no reward; RUNE learns PEBBLE's reward and changes only the agent's; MRN's meta step needs
+    the agent's critic; SURF is not yet a rule: its segments are longer than the others')."""
 
 
 def names() -> list[str]:
