@@ -211,3 +211,32 @@ def test_cli_grid_and_report_errors_name_the_fix(tmp_path, capsys):
     _fake_run(tmp_path / "r", "walk", "pebble", {1: [5, 5, 10]})
     assert cli.main(["report", str(tmp_path / "r"), "--no-attention"]) == 0
     assert "| walk | 0.50 |" in capsys.readouterr().out
+
+
+def test_compare_runs_pairs_seeds_like_numpy_and_scipy(tmp_path):
+    """B − A per seed on the final evaluation and on the mean after the seed steps; the
+    difference, its t-interval and p equal a direct computation (scipy's ttest_rel)."""
+    from hprior_jax.experiments import compare_runs
+
+    rng = np.random.default_rng(0)
+    seeds, steps = [1, 2, 3, 4, 5], [5000, 10000, 15000]
+    values = {run: rng.normal(100, 20, (len(seeds), len(steps))) for run in ("a", "b")}
+    for run, v in values.items():
+        (tmp_path / run).mkdir()
+        rows = ["step,seed,true_return,success"] + [
+            f"{st},{s},{v[i, j]},"
+            for j, st in enumerate(steps) for i, s in enumerate(seeds)]
+        (tmp_path / run / "eval.csv").write_text("\n".join(rows) + "\n")
+    assert compare_runs.main([str(tmp_path / "a"), str(tmp_path / "b"),
+                              "--out", str(tmp_path / "cmp")]) == 0
+    _, summary = compare_runs.compare(tmp_path / "a", tmp_path / "b")
+    for row, (a, b) in zip(summary, [(values["a"][:, -1], values["b"][:, -1]),
+                                     (values["a"][:, 1:].mean(1), values["b"][:, 1:].mean(1))]):
+        d = b - a
+        assert row["n"] == 5 and row["diff"] == pytest.approx(d.mean())
+        half = stats.t.ppf(0.975, 4) * d.std(ddof=1) / np.sqrt(5)
+        assert (row["diff_lo"], row["diff_hi"]) == pytest.approx((d.mean() - half, d.mean() + half))
+        assert row["p"] == pytest.approx(stats.ttest_rel(b, a).pvalue)
+        assert 0 < row["mde80"] < np.inf
+    assert {p.name for p in (tmp_path / "cmp").iterdir()} == {"per_seed.csv", "summary.csv",
+                                                               "report.md"}
