@@ -62,6 +62,7 @@ from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
            "attention_no_own_step", "bisimulation")
+OWN_PROGRAM = "own_program"  # a method's rule that runs in a program of its own (its lab_rule)
 NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
 BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
@@ -80,6 +81,7 @@ class LabConfig:
     bisim_lam: float = 0.5  # λ_bisim of the bisim rule (BISIM's default)
     bisim_transitions: int = 4  # transitions per stored-pair row (BISIM's default)
     discount: float = 0.99  # γ of the bisimulation target (SAC's, as in BISIM)
+    own_rules: tuple = ()  # (rule, its method's lab rule object) of every OWN_PROGRAM rule
     budgets: tuple[int, ...] = (25, 100, 400)
     queries_per_round: int = 10
     feed_type: str = "disagreement"
@@ -99,10 +101,13 @@ class LabConfig:
     def __post_init__(self):
         if len(self.rules) != len(self.credits) or not self.rules:
             raise ValueError("give one credit per rule")
+        own = [r for r, c in zip(self.rules, self.credits) if c == OWN_PROGRAM]
+        if own != [r for r, _ in self.own_rules]:
+            raise ValueError(f"give the lab rule object of every own-program rule {own}")
         for name in ("clips", "rule_lams"):
             if len(getattr(self, name)) not in (0, len(self.rules)):
                 raise ValueError(f"give one of {name} per rule, or none")
-        bad = set(self.credits) - set(CREDITS)
+        bad = set(self.credits) - set(CREDITS) - {OWN_PROGRAM}
         if bad:
             raise ValueError(f"unknown credit {sorted(bad)}; available: {', '.join(CREDITS)}")
         if list(self.budgets) != sorted(set(self.budgets)) or self.budgets[0] < 1:
@@ -111,6 +116,11 @@ class LabConfig:
             raise ValueError("a rule with attention or positional credit needs a world model")
         if self.needs_bisim and not self.reward.next_embedding_head:
             raise ValueError("the bisim rule needs RewardConfig(next_embedding_head=True)")
+
+    @property
+    def shared_rules(self) -> list[int]:
+        """Indices of the rules that share the main program (all but OWN_PROGRAM ones)."""
+        return [i for i, c in enumerate(self.credits) if c != OWN_PROGRAM]
 
     @property
     def needs_bisim(self) -> bool:
@@ -202,14 +212,20 @@ class Lab:
         self.act_size = data.train_act.shape[-1]
         self.T = data.segment_len
         self.tx = make_optimizer(cfg.preference)
-        lams = cfg.rule_lams or (None,) * len(cfg.rules)
+        if given is not None and cfg.own_rules:
+            raise ValueError("given labels train the rules of the shared program only, not "
+                             f"{[r for r, _ in cfg.own_rules]}")
+        shared = cfg.shared_rules
+        pick = lambda values: [values[i] for i in shared]
+        credits = pick(cfg.credits)
         self.rule_args = RuleArgs(
-            credit=jnp.asarray([CREDITS.index(c) for c in cfg.credits], jnp.int32),
+            credit=jnp.asarray([CREDITS.index(c) for c in credits], jnp.int32),
             lam=jnp.asarray([0.0 if c in NO_PRIOR else cfg.lam if lam is None else lam
-                             for c, lam in zip(cfg.credits, lams)], jnp.float32),
-            clip=jnp.asarray(cfg.clips or (False,) * len(cfg.rules)),
+                             for c, lam in zip(credits, pick(cfg.rule_lams or (None,) * len(cfg.rules)))],
+                            jnp.float32),
+            clip=jnp.asarray(pick(cfg.clips or (False,) * len(cfg.rules)), bool),
             bisim_lam=jnp.asarray([cfg.bisim_lam if c == "bisimulation" else 0.0
-                                   for c in cfg.credits], jnp.float32))
+                                   for c in credits], jnp.float32))
         d = data
         # passed to the programs as arguments (not baked in as constants), so labs on data
         # of the same shapes share compiled programs
@@ -361,10 +377,8 @@ class Lab:
 
     def init_cells(self, keys: jax.Array, capacity: int) -> Cell:
         """[S, R] cells: every rule of a seed starts from the same weights and key."""
-        r = len(self.cfg.rules)
-        one = lambda k: jax.tree.map(lambda x: jnp.broadcast_to(x, (r,) + x.shape),
-                                     self.init_cell(k, capacity))
-        return jax.jit(jax.vmap(one))(keys)
+        return _broadcast_cells(partial(self.init_cell, capacity=capacity), keys,
+                                len(self.cfg.shared_rules))
 
     def _world_model_diagnostics(self, ctx: SeedContext, num_segments: int = 256) -> list[dict]:
         """prior.diagnostics of each seed's world model on fixed held-out segments (the same
@@ -399,40 +413,84 @@ class Lab:
                                              (0, 0, None) + (None,) * 5,
                                              (0, None, 0) + (None,) * 5)
         predict_fn = _over_cells(self.predict, (0, None), (0, None))
+        own_round_fn, own_predict_fn = self._own_programs(feed)
         if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
             schedule = [[(b, b)] for b in cfg.budgets]
         else:
             schedule = [cfg.rounds()]
+        shared = [cfg.rules[i] for i in cfg.shared_rules]
         rows = []
         for rounds in schedule:
             capacity = rounds[-1][1]
-            cells = self.init_cells(keys, capacity)
+            cells = self.init_cells(keys, capacity) if shared else None
+            own_cells = {name: _broadcast_cells(partial(
+                rule.init, capacity=capacity, obs_size=self.obs_size, act_size=self.act_size,
+                lab=cfg), keys, 1) for name, rule in cfg.own_rules}
             queries = capacity if cfg.one_shot else cfg.queries_per_round
             rounds_labels = np.cumsum([n for n, _ in rounds])  # labels stored after each
             for i, (n, budget) in enumerate(rounds):
-                args = (cells, ctx, self.rule_args, jnp.int32(n),
-                        jnp.asarray(i == 0), self.train, self.mean_return, self.given)
-                batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
-                fn = self._compiled(f"round/{queries}/batch{batch}", rounds_fn(queries, batch),
-                                    *args, donate=0)
-                cells, m = self._timed("rounds", fn, *args)  # the old cells are donated
-                m = jax.device_get(m)
-                batches = -(-int(np.max(m["labels"])) // batch)
-                # vmapped, a round runs until its slowest cell stops: that is what it costs
-                self.adam_steps += int(np.max(m["epochs"])) * batches
+                by_rule = {}  # rule -> (predictions [S, ...], metrics {name: [S]})
+                if shared:
+                    args = (cells, ctx, self.rule_args, jnp.int32(n),
+                            jnp.asarray(i == 0), self.train, self.mean_return, self.given)
+                    batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
+                    fn = self._compiled(f"round/{queries}/batch{batch}",
+                                        rounds_fn(queries, batch), *args, donate=0)
+                    cells, m = self._timed("rounds", fn, *args)  # the old cells are donated
+                    m = jax.device_get(m)
+                    batches = -(-int(np.max(m["labels"])) // batch)
+                    # vmapped, a round runs until its slowest cell stops: that is what it costs
+                    self.adam_steps += int(np.max(m["epochs"])) * batches
+                    if budget is not None:
+                        predict = self._compiled("predict", predict_fn, cells, self.test)
+                        pred = np.asarray(self._timed("predict", predict, cells, self.test))
+                        by_rule |= {r: (pred[:, ri], {k: np.asarray(v)[:, ri]
+                                                      for k, v in m.items()})
+                                    for ri, r in enumerate(shared)}
+                for name, rule in cfg.own_rules:
+                    args = (own_cells[name], jnp.int32(n), jnp.asarray(i == 0), self.train,
+                            self.mean_return)
+                    fn = self._compiled(f"{name}/round/{queries}",
+                                        own_round_fn(rule, queries), *args, donate=0)
+                    own_cells[name], m = self._timed("rounds", fn, *args)
+                    m = jax.device_get(m)
+                    self.adam_steps += int(np.max(m["epochs"]))  # its iterations: Adam steps
+                    if budget is not None:
+                        fn = self._compiled(f"{name}/predict", own_predict_fn(rule),
+                                            own_cells[name], self.test)
+                        pred = np.asarray(self._timed("predict", fn, own_cells[name], self.test))
+                        by_rule[name] = (pred[:, 0], {k: np.asarray(v)[:, 0]
+                                                      for k, v in m.items()})
                 if budget is None:
                     continue
-                predict = self._compiled("predict", predict_fn, cells, self.test)
-                pred = np.asarray(self._timed("predict", predict, cells, self.test))
                 for si, seed in enumerate(cfg.seeds):
-                    for ri, rule in enumerate(cfg.rules):
+                    for rule in cfg.rules:
+                        pred, m = by_rule[rule]
                         rows.append(dict(seed=seed, rule=rule, budget=budget,
-                                         prediction=pred[si, ri],
-                                         **{k: np.asarray(v)[si, ri].item() for k, v in m.items()}))
+                                         prediction=pred[si],
+                                         **{k: v[si].item() for k, v in m.items()}))
                 progress(f"{budget} labels: {len(cfg.seeds)} seeds x {len(cfg.rules)} rules, "
                          f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
         return rows
+
+    def _own_programs(self, feed: str):
+        """(round, predict) builders of the own-program rules' cells [S, 1]."""
+        cfg = self.cfg
+        round_fn = lambda rule, q: _over_cells(
+            partial(rule.round, lab=cfg, queries=q, feed=feed,
+                    episode_length=self.data.episode_length),
+            (0,) + (None,) * 4, (0,) + (None,) * 4)
+        predict_fn = lambda rule: _over_cells(
+            lambda cell, test: mean_reward(rule.reward(cell), test.obs, test.act, cfg.reward),
+            (0, None), (0, None))
+        return round_fn, predict_fn
+
+
+def _broadcast_cells(init, keys: jax.Array, rules: int):
+    """[S, rules] cells: every rule of a seed starts from `init(key)` of that seed."""
+    one = lambda k: jax.tree.map(lambda x: jnp.broadcast_to(x, (rules,) + x.shape), init(k))
+    return jax.jit(jax.vmap(one))(keys)
 
 
 def _over_cells(fn, seed_axes, rule_axes):

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from hprior_jax.lab.dataset import Dataset
-from hprior_jax.lab.learn import ABLATIONS, CONTROLS, NO_PRIOR, GivenLabels, Lab, LabConfig
+from hprior_jax.lab.learn import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, GivenLabels, Lab,
+                                  LabConfig)
 from hprior_jax.lab.metrics import reward_quality
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -63,7 +64,8 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
     if len(set(rule_names)) < len(rule_names):
         raise ValueError(f"a rule is named twice: {rule_names}")
-    without_term = [r for r, lam in parsed if lam is not None and known[r] in NO_PRIOR]
+    without_term = [r for r, lam in parsed
+                    if lam is not None and known[r] in (*NO_PRIOR, OWN_PROGRAM)]
     if without_term:
         raise ValueError(f"{without_term} train no prior term: @LAMBDA has nothing to weigh")
     if teacher not in TEACHERS:
@@ -96,6 +98,8 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
                             next_embedding_head="bisimulation" in (known[r] for r, _ in parsed)),
         bisim_lam=BisimConfig().lam, bisim_transitions=BisimConfig().transitions_per_pair,
         discount=rl.sac.discount,
+        own_rules=tuple((r, registry.get(r).lab_rule(data.task, preset))
+                        for r, _ in parsed if known[r] == OWN_PROGRAM),
         preference=PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
                                     lr=p.reward_lr),
         teacher=TEACHERS[teacher],
