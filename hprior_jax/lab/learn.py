@@ -1,4 +1,5 @@
-"""Reward learning on fixed data, every (seed, rule) cell in one compiled program.
+"""Reward learning on fixed data, every (seed, rule) cell in one compiled program (SURF in
+one of its own).
 
 A cell trains one reward ensemble the way the RL loop's feedback rounds do (queries from the
 training episodes, the first round uniform, then `feed_type`; the teacher; `train_reward` with
@@ -20,6 +21,9 @@ decides the credit α of each stored pair:
 
 A rule may also clip its targets α_t·R̂ to the reward's range and have its own λ (`clips`,
 `rule_lams`): PRIOR's ablations and a λ sweep then run side by side, as rules of one program.
+A method whose update has other shapes (SURF: longer stored segments, an unlabelled pool)
+runs in a program of its own (`OWN_PROGRAM`, its `MethodSpec.lab_rule`), one cell per seed,
+with the same seeds' initial weights, on the same schedule; its rows join the others'.
 
 Budgets are checkpoints of one run per cell: rounds of `queries_per_round`, clipped so the
 label count lands on every budget (for budgets 25 and 100 at 10 per round: 10, 10, 5, then 10
@@ -215,15 +219,14 @@ class Lab:
         if given is not None and cfg.own_rules:
             raise ValueError("given labels train the rules of the shared program only, not "
                              f"{[r for r, _ in cfg.own_rules]}")
-        shared = cfg.shared_rules
-        pick = lambda values: [values[i] for i in shared]
-        credits = pick(cfg.credits)
+        pick = lambda values, default: [(values or (default,) * len(cfg.rules))[i]
+                                        for i in cfg.shared_rules]
+        credits = pick(cfg.credits, None)
         self.rule_args = RuleArgs(
             credit=jnp.asarray([CREDITS.index(c) for c in credits], jnp.int32),
             lam=jnp.asarray([0.0 if c in NO_PRIOR else cfg.lam if lam is None else lam
-                             for c, lam in zip(credits, pick(cfg.rule_lams or (None,) * len(cfg.rules)))],
-                            jnp.float32),
-            clip=jnp.asarray(pick(cfg.clips or (False,) * len(cfg.rules)), bool),
+                             for c, lam in zip(credits, pick(cfg.rule_lams, None))], jnp.float32),
+            clip=jnp.asarray(pick(cfg.clips, False), bool),
             bisim_lam=jnp.asarray([cfg.bisim_lam if c == "bisimulation" else 0.0
                                    for c in credits], jnp.float32))
         d = data
