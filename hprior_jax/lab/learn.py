@@ -354,7 +354,7 @@ class Lab:
                                     equal=given.labels == -1,
                                     mistake=jnp.zeros(given.labels.shape, bool))
 
-    def predict(self, cell: Cell, test: Episodes) -> jax.Array:
+    def predict(self, cell, test: Episodes) -> jax.Array:
         """r̂ (the ensemble mean, what the agent trains on) of every held-out state [E, L]."""
         return mean_reward(cell.reward, test.obs, test.act, self.cfg.reward)
 
@@ -408,62 +408,31 @@ class Lab:
             progress("world model, mean over seeds: " + ", ".join(
                 f"{k} {np.mean([d[k] for d in self.diagnostics]):.3g}"
                 for k in self.diagnostics[0] if k != "seed"))
-        # one-shot runs have only a first round: no candidate pool for the uncertainty rules
-        feed = "uniform" if cfg.one_shot else cfg.feed_type
-        # cells [S, R]: rules vmapped inside seeds, so a seed's world model is not copied
-        rounds_fn = lambda q, b: _over_cells(partial(self.round, queries=q, batch_size=b,
-                                                     feed=feed),
-                                             (0, 0, None) + (None,) * 5,
-                                             (0, None, 0) + (None,) * 5)
-        predict_fn = _over_cells(self.predict, (0, None), (0, None))
-        own_round_fn, own_predict_fn = self._own_programs(feed)
         if cfg.one_shot:  # a fresh run per budget: one round of all its labels, uniform
             schedule = [[(b, b)] for b in cfg.budgets]
         else:
             schedule = [cfg.rounds()]
-        shared = [cfg.rules[i] for i in cfg.shared_rules]
         rows = []
         for rounds in schedule:
             capacity = rounds[-1][1]
-            cells = self.init_cells(keys, capacity) if shared else None
-            own_cells = {name: _broadcast_cells(partial(
+            shared = [cfg.rules[i] for i in cfg.shared_rules]
+            groups = ([_Group("shared", shared, self.init_cells(keys, capacity),
+                              self._shared_step)] if shared else [])
+            groups += [_Group(name, [name], _broadcast_cells(partial(
                 rule.init, capacity=capacity, obs_size=self.obs_size, act_size=self.act_size,
-                lab=cfg), keys, 1) for name, rule in cfg.own_rules}
+                lab=cfg), keys, 1), partial(self._own_step, name, rule))
+                for name, rule in cfg.own_rules]
             queries = capacity if cfg.one_shot else cfg.queries_per_round
-            rounds_labels = np.cumsum([n for n, _ in rounds])  # labels stored after each
+            labels_after = np.cumsum([n for n, _ in rounds])  # labels stored after each round
             for i, (n, budget) in enumerate(rounds):
                 by_rule = {}  # rule -> (predictions [S, ...], metrics {name: [S]})
-                if shared:
-                    args = (cells, ctx, self.rule_args, jnp.int32(n),
-                            jnp.asarray(i == 0), self.train, self.mean_return, self.given)
-                    batch = minibatch_size(rounds_labels[i], cfg.preference.batch_size)
-                    fn = self._compiled(f"round/{queries}/batch{batch}",
-                                        rounds_fn(queries, batch), *args, donate=0)
-                    cells, m = self._timed("rounds", fn, *args)  # the old cells are donated
-                    m = jax.device_get(m)
-                    batches = -(-int(np.max(m["labels"])) // batch)
-                    # vmapped, a round runs until its slowest cell stops: that is what it costs
-                    self.adam_steps += int(np.max(m["epochs"])) * batches
+                for group in groups:
+                    group.cells, m = group.step(group.cells, ctx, n, i == 0, queries,
+                                                labels_after[i])
                     if budget is not None:
-                        predict = self._compiled("predict", predict_fn, cells, self.test)
-                        pred = np.asarray(self._timed("predict", predict, cells, self.test))
-                        by_rule |= {r: (pred[:, ri], {k: np.asarray(v)[:, ri]
-                                                      for k, v in m.items()})
-                                    for ri, r in enumerate(shared)}
-                for name, rule in cfg.own_rules:
-                    args = (own_cells[name], jnp.int32(n), jnp.asarray(i == 0), self.train,
-                            self.mean_return)
-                    fn = self._compiled(f"{name}/round/{queries}",
-                                        own_round_fn(rule, queries), *args, donate=0)
-                    own_cells[name], m = self._timed("rounds", fn, *args)
-                    m = jax.device_get(m)
-                    self.adam_steps += int(np.max(m["epochs"]))  # its iterations: Adam steps
-                    if budget is not None:
-                        fn = self._compiled(f"{name}/predict", own_predict_fn(rule),
-                                            own_cells[name], self.test)
-                        pred = np.asarray(self._timed("predict", fn, own_cells[name], self.test))
-                        by_rule[name] = (pred[:, 0], {k: np.asarray(v)[:, 0]
-                                                      for k, v in m.items()})
+                        pred = self.predict_cells(group.cells, f"{group.name}/predict")
+                        by_rule |= {r: (pred[:, ri], {k: v[:, ri] for k, v in m.items()})
+                                    for ri, r in enumerate(group.rules)}
                 if budget is None:
                     continue
                 for si, seed in enumerate(cfg.seeds):
@@ -477,17 +446,56 @@ class Lab:
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
         return rows
 
-    def _own_programs(self, feed: str):
-        """(round, predict) builders of the own-program rules' cells [S, 1]."""
+    @property
+    def _feed(self) -> str:
+        # one-shot runs have only a first round: no candidate pool for the uncertainty rules
+        return "uniform" if self.cfg.one_shot else self.cfg.feed_type
+
+    def _shared_step(self, cells, ctx, n, first, queries, labels):
+        """One round of the shared program's cells [S, R] -> (cells, metrics [S, R])."""
         cfg = self.cfg
-        round_fn = lambda rule, q: _over_cells(
-            partial(rule.round, lab=cfg, queries=q, feed=feed,
-                    episode_length=self.data.episode_length),
-            (0,) + (None,) * 4, (0,) + (None,) * 4)
-        predict_fn = lambda rule: _over_cells(
-            lambda cell, test: mean_reward(rule.reward(cell), test.obs, test.act, cfg.reward),
-            (0, None), (0, None))
-        return round_fn, predict_fn
+        batch = minibatch_size(labels, cfg.preference.batch_size)
+        # rules vmapped inside seeds, so a seed's world model is not copied
+        fn = _over_cells(partial(self.round, queries=queries, batch_size=batch, feed=self._feed),
+                         (0, 0, None) + (None,) * 5, (0, None, 0) + (None,) * 5)
+        args = (cells, ctx, self.rule_args, jnp.int32(n), jnp.asarray(first), self.train,
+                self.mean_return, self.given)
+        fn = self._compiled(f"round/{queries}/batch{batch}", fn, *args, donate=0)
+        cells, m = self._timed("rounds", fn, *args)  # the old cells are donated
+        m = jax.device_get(m)
+        # vmapped, a round runs until its slowest cell stops: that is what it costs
+        self.adam_steps += int(np.max(m["epochs"])) * -(-int(np.max(m["labels"])) // batch)
+        return cells, m
+
+    def _own_step(self, name, rule, cells, ctx, n, first, queries, labels):
+        """One round of an own-program rule's cells [S, 1] -> (cells, metrics [S, 1])."""
+        fn = _over_cells(partial(rule.round, lab=self.cfg, queries=queries, feed=self._feed,
+                                 episode_length=self.data.episode_length),
+                         (0,) + (None,) * 4, (0,) + (None,) * 4)
+        args = (cells, jnp.int32(n), jnp.asarray(first), self.train, self.mean_return)
+        fn = self._compiled(f"{name}/round/{queries}", fn, *args, donate=0)
+        cells, m = self._timed("rounds", fn, *args)
+        m = jax.device_get(m)
+        self.adam_steps += int(np.max(m["epochs"]))  # its iterations are Adam steps
+        return cells, m
+
+    def predict_cells(self, cells, name: str) -> np.ndarray:
+        """r̂ of every held-out state under every cell: [S, R, E, L] (any cells whose
+        `reward` field holds the ensemble: an own-program rule's too)."""
+        fn = _over_cells(self.predict, (0, None), (0, None))
+        fn = self._compiled(name, fn, cells, self.test)
+        return np.asarray(self._timed("predict", fn, cells, self.test))
+
+
+@dataclass
+class _Group:
+    """Rules that train in one program: its name, the rules, their cells [S, len(rules)] and
+    the round step."""
+
+    name: str
+    rules: list[str]
+    cells: object
+    step: object  # (cells, ctx, n, first, queries, labels) -> (cells, metrics)
 
 
 def _broadcast_cells(init, keys: jax.Array, rules: int):

@@ -44,15 +44,16 @@ class MethodSpec:
     lab_credit: str | None = None
     """How the method's reward update enters the reward-learning lab (`hprior reward-lab`): the
     credit α of its prior term (hprior_jax.lab.learn.CREDITS; "none" = cross-entropy only;
-    "bisimulation" = BISIM's bisimulation term instead of a prior). None: not a lab rule (SAC learns
-    no reward; RUNE learns PEBBLE's reward and changes only the agent's; MRN's meta step needs
-    the agent's critic). "own_program": the method trains in a program of its own shapes,
-    built by `lab_rule`."""
+    "bisimulation" = BISIM's bisimulation term instead of a prior); "own_program" = it trains
+    in a program of its own shapes, built by `lab_rule`. None: not a lab rule (SAC learns no
+    reward; RUNE learns PEBBLE's reward and changes only the agent's; MRN's meta step needs
+    the agent's critic)."""
     lab_rule: Callable | None = None
     """(task, preset name) -> the method's lab rule (`lab_credit="own_program"`): a hashable
-    object with `init(key, capacity, obs_size, act_size, lab_cfg) -> cell`, `round(cell,
-    num_queries, first, train, mean_return, *, lab, queries, feed, episode_length) -> (cell,
-    metrics)` and `reward(cell) -> ensemble parameters` (hprior_jax.lab.learn runs it)."""
+    object with `init(key, capacity, obs_size, act_size, lab_cfg) -> cell` (a pytree whose
+    `reward` field is the ensemble's parameters) and `round(cell, num_queries, first, train,
+    mean_return, *, lab, queries, feed, episode_length) -> (cell, metrics)`; the lab
+    (hprior_jax.lab.learn) vmaps or maps it over seeds."""
 
 
 def names() -> list[str]:

@@ -204,9 +204,6 @@ class SurfLabRule:
                    "confident": m["surf/confident"]}
         return SurfLabCell(reward=params, opt=opt, prefs=prefs, pool=pool, key=key), metrics
 
-    def reward(self, cell: SurfLabCell):
-        return cell.reward
-
 
 def surf_preset(task: str, preset: str, sac) -> dict:
     """PEBBLE's preset plus SURF's config; the window shrinks only where H + 2w would not fit
