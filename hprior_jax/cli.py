@@ -456,6 +456,15 @@ def _reward_lab(argv: list[str]) -> int:
     parser.add_argument("--one-shot", action="store_true",
                         help="train once on all of a budget's labels (uniform queries)")
     parser.add_argument("--lam", type=float, default=None, help="λ (default: the preset's)")
+    parser.add_argument("--prior-set", nargs="+", default=None, metavar="FIELD=VALUE",
+                        help="change the proposed method's settings for this lab, e.g. "
+                             "wm_layers=2 or wm_update_steps=500 (a world-model ablation); "
+                             "the rules that read the world model are then reported as "
+                             "RULE[TAG]")
+    parser.add_argument("--tag", default=None,
+                        help="TAG of --prior-set (default: the settings); merge the reports "
+                             "of several labs with `python -m hprior_jax.experiments."
+                             "lab_report A/results.csv B/results.csv OUT`")
     parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
     args = parser.parse_args(argv)
     from hprior_jax.lab.sweep import lab_config, run_lab
@@ -493,7 +502,8 @@ def _reward_lab(argv: list[str]) -> int:
         print(f"warning: {args.seeds} seeds; the lab's comparisons want 10 or more",
               file=sys.stderr)
     cfg = lab_config(data, args.preset, args.rules, args.seeds, args.budgets,
-                     args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam)
+                     args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam,
+                     args.prior_set, args.tag)
     out = args.out or f"runs/reward_lab/{args.task}"
     info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given)
     print(f"{info['wall_seconds']} s, peak RSS {info['peak_rss_gib']} GiB; report in {out}")

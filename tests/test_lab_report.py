@@ -142,3 +142,27 @@ def test_write_report_and_main_regenerate_it(tmp_path):
     assert lab_report.main([str(out / "results.csv"), str(again)]) == again / "report.md"
     for name in ("summary.csv", "results.csv", "report.md"):
         assert (again / name).read_bytes() == (out / name).read_bytes()
+
+
+def test_main_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
+    """Two labs of the same seeds (e.g. two world models): their own rules join one report;
+    the reference rule both ran is kept once, from the first file, and a disagreement between
+    the two copies is counted and said."""
+    rows = _synthetic_rows()
+    write_report([r for r in rows if r["rule"] != "same"], tmp_path / "a")
+    second = [dict(r) for r in rows if r["rule"] != "better"]
+    moved = next(r for r in second if (r["rule"], r["seed"]) == ("pebble", 0))
+    moved["pearson"] += 0.5
+    write_report(second, tmp_path / "b")
+    paths = [tmp_path / "a" / "results.csv", tmp_path / "b" / "results.csv"]
+
+    merged, differing = lab_report.merge_results(paths)
+    assert differing == 1
+    assert len(merged) == len(rows)
+    kept = next(r for r in merged if (r["rule"], r["seed"], r["budget"])
+                == (moved["rule"], 0, moved["budget"]))
+    assert kept["pearson"] == pytest.approx(moved["pearson"] - 0.5)
+    lab_report.main([*map(str, paths), str(tmp_path / "both")])
+    assert "1 rows found in several files differ" in capsys.readouterr().err
+    text = (tmp_path / "both" / "report.md").read_text()
+    assert "- better − pebble at" in text and "- same − pebble at" in text

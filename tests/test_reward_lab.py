@@ -101,6 +101,57 @@ def test_ablations_and_lambdas_are_rules_of_one_lab(data):
             lab_config(dataclasses.replace(data, task="toy_point"), "smoke", bad)
 
 
+def test_prior_settings_change_the_world_model_and_tag_the_rules_that_read_it(data):
+    """`--prior-set`: a world-model ablation as a lab of its own; its world-model rules carry
+    the settings (or `--tag`) in their names, so its rows and another lab's merge apart."""
+    toy = dataclasses.replace(data, task="toy_point", info={"steps": 50_000})
+    names = ["pebble", "prior", "positional", "rvar", "prior@25"]
+    base = lab_config(toy, "smoke", names)
+    cfg = lab_config(toy, "smoke", names, prior_settings=["wm_layers=2", "wm-update-steps=7"])
+    assert cfg.world_model.num_layers == 2 != base.world_model.num_layers
+    from hprior_jax import presets
+
+    per_update = presets.train_preset("toy_point", registry.PROPOSED, "smoke").prior
+    assert cfg.wm_steps * per_update.wm_update_steps == base.wm_steps * 7 > 0
+    tag = "[wm_layers=2,wm-update-steps=7]"
+    assert cfg.rules == ("pebble", f"prior{tag}", f"positional{tag}", "rvar", f"prior@25{tag}")
+    assert cfg.rule_lams == base.rule_lams and cfg.credits == base.credits
+    tagged = lab_config(toy, "smoke", names, prior_settings=["wm_layers=2"], tag="deep")
+    assert tagged.rules[1] == "prior[deep]"
+    assert lab_config(toy, "smoke", names, prior_settings=["clip_targets=true"]
+                      ).world_model == base.world_model
+    for bad, match in ((["wm_layer=1"], "FIELD=VALUE"), (["wm_layers"], "FIELD=VALUE"),
+                       (["clip_targets=yes"], "true or false"), (["wm_layers=0"], "positive")):
+        with pytest.raises(ValueError, match=match):
+            lab_config(toy, "smoke", names, prior_settings=bad)
+
+
+def test_the_report_is_written_as_each_budget_is_reached(data, tmp_path, monkeypatch):
+    """A lab stopped after its first budget keeps that budget's report."""
+    from hprior_jax.lab import sweep
+
+    seen = []
+
+    class TwoBudgets:  # Lab's protocol: run(progress, on_budget) with rows per budget
+        seconds, compile_seconds, adam_steps, diagnostics = {}, {}, 0, []
+
+        def __init__(self, cfg, data, given):
+            pass
+
+        def run(self, progress, on_budget):
+            for budget in (10, 20):
+                on_budget([dict(seed=s, rule=r, budget=budget,
+                                prediction=np.asarray(data.test_reward) + s)
+                           for s in (0, 1) for r in ("pebble", "rvar")])
+                seen.append((tmp_path / "lab" / "results.csv").read_text().count("\n"))
+
+    monkeypatch.setattr(sweep, "Lab", TwoBudgets)
+    sweep.run_lab(data, tiny(rules=("pebble", "rvar"), credits=("none", "uniform")),
+                  tmp_path / "lab")
+    assert seen == [1 + 4, 1 + 8]  # header + 2 seeds x 2 rules, then the second budget's too
+    assert "run_info.json" in {p.name for p in (tmp_path / "lab").iterdir()}
+
+
 @pytest.mark.slow  # CI time (~100 s)
 def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_and_bisim_change_the_reward(
         data):
@@ -352,8 +403,10 @@ def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
 def test_one_shot_trains_each_budget_afresh_on_all_its_labels(data):
     cfg = tiny(rules=("pebble",), credits=("none",), seeds=(0,), budgets=(10, 20),
                one_shot=True, world_model=None)
-    rows = Lab(cfg, data).run(**quiet)
+    reached = []
+    rows = Lab(cfg, data).run(on_budget=reached.append, **quiet)
     assert [(r["budget"], r["labels"]) for r in rows] == [(10, 10), (20, 20)]
+    assert reached == [[rows[0]], [rows[1]]]  # each budget's rows as it is reached
     assert all(r["epochs"] >= 1 for r in rows)
 
 

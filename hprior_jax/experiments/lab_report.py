@@ -5,7 +5,7 @@ The lab's raw results are rows, one per (task, rule, budget, seed), holding the 
 metrics of `METRICS` measured on held-out data (other columns are carried along, not used).
 `write_report` turns them into summary.csv, results.csv, one plot per (task, metric) and
 report.md; `python -m hprior_jax.experiments.lab_report RESULTS_CSV OUT_DIR` rebuilds all of it
-from a saved results.csv.
+from a saved results.csv (several RESULTS_CSV: one report of several labs, `merge_results`).
 
 Statistical choices:
 - a mean over seeds comes with a Student t-interval (n - 1 degrees of freedom); NaN values are
@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -191,6 +192,23 @@ def read_results(path: Path) -> list[dict]:
     return rows
 
 
+def merge_results(paths) -> tuple[list[dict], int]:
+    """The rows of several results.csv as one lab's (labs of one dataset and seeds, e.g. one
+    per world model, their rules tagged apart). A (task, rule, budget, seed) row found again
+    in a later file (the reference rule, run by every lab) is dropped: the first file's is
+    kept. -> (rows, how many of the dropped rows differed from the kept one in a metric)."""
+    kept, differing = {}, 0
+    for path in paths:
+        for row in read_results(path):
+            key = (row["task"], row["rule"], row["budget"], row["seed"])
+            if key not in kept:
+                kept[key] = row
+            elif any(not np.isclose(kept[key][m], row[m], atol=1e-6, equal_nan=True)
+                     for m in METRICS if m in row):
+                differing += 1
+    return list(kept.values()), differing
+
+
 def png_name(task: str, metric: str) -> str:
     return f"{task}_{metric}.png"
 
@@ -329,12 +347,18 @@ def write_report(rows, out_dir, title: str = DEFAULT_TITLE) -> Path:
 def main(argv=None) -> Path:
     parser = argparse.ArgumentParser(
         prog="python -m hprior_jax.experiments.lab_report",
-        description="Rebuild a reward-learning lab report from its raw results.csv.")
-    parser.add_argument("results_csv", type=Path)
-    parser.add_argument("out_dir", type=Path)
+        description="Rebuild a reward-learning lab report from its raw results.csv, or merge "
+                    "the results.csv of several labs (same dataset and seeds) into one report.")
+    parser.add_argument("paths", type=Path, nargs="+", metavar="RESULTS_CSV... OUT_DIR")
     parser.add_argument("--title", default=DEFAULT_TITLE)
     args = parser.parse_args(argv)
-    report = write_report(read_results(args.results_csv), args.out_dir, args.title)
+    if len(args.paths) < 2:
+        parser.error("give one or more results.csv and then the output folder")
+    rows, differing = merge_results(args.paths[:-1])
+    if differing:
+        print(f"{differing} rows found in several files differ in a metric: the first "
+              "file's are kept", file=sys.stderr)
+    report = write_report(rows, args.paths[-1], args.title)
     print(report)
     return report
 

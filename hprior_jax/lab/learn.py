@@ -60,13 +60,15 @@ from hprior_jax.pbrl.query import pairs_at, select_queries
 from hprior_jax.pbrl.teacher import (TeacherConfig, TeacherOutput, compute_thresholds,
                                      teacher_labels)
 from hprior_jax.prior import world_model as wm
-from hprior_jax.prior.attention import segment_credit
+from hprior_jax.prior.attention import (credit_from_attention, segment_attention,
+                                        segment_credit)
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
            "attention_no_own_step", "bisimulation")
 OWN_PROGRAM = "own_program"  # a method's rule that runs in a program of its own (its lab_rule)
+WORLD_MODEL_CREDITS = ("attention", "attention_nrp", "attention_no_own_step", "positional")
 NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
 BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
@@ -132,8 +134,7 @@ class LabConfig:
 
     @property
     def needs_world_model(self) -> bool:
-        return bool({"attention", "attention_nrp", "attention_no_own_step", "positional"}
-                    & set(self.credits))
+        return bool(set(WORLD_MODEL_CREDITS) & set(self.credits))
 
     def rounds(self) -> list[tuple[int, int | None]]:
         """(queries, budget reached after it or None) of every round, round by round."""
@@ -278,10 +279,11 @@ class Lab:
         if ctx.wm_params is None:
             attention = no_own_step = uniform
         else:
+            attn = segment_attention(ctx.wm_params, obs, act, self.cfg.world_model)
             attention, no_own_step = (
-                segment_credit(ctx.wm_params, obs, act, self.cfg.world_model,
-                               query=self.cfg.attention_query, own_step=own)
-                for own in (True, False))
+                jax.vmap(partial(credit_from_attention, num_steps=self.T,
+                                 query=self.cfg.attention_query, own_step=own))(attn)
+                for own in (True, False))  # one pass of the world model for both
         share = jnp.maximum(true_r, 0.0)
         total = share.sum(-1, keepdims=True)
         oracle = jnp.where(total > 1e-8, share / jnp.maximum(total, 1e-8), uniform)
@@ -395,9 +397,10 @@ class Lab:
         return [dict(seed=seed, **{k: float(v[i]) for k, v in out.items()})
                 for i, seed in enumerate(self.cfg.seeds)]
 
-    def run(self, progress=print) -> list[dict]:
+    def run(self, progress=print, on_budget=None) -> list[dict]:
         """Every cell through every budget. -> rows (seed, rule, budget, the held-out
-        predictions [E, L] as `prediction`, and the budget's last round's metrics)."""
+        predictions [E, L] as `prediction`, and the budget's last round's metrics).
+        `on_budget(rows)`, if given, gets each budget's rows as soon as it is reached."""
         cfg = self.cfg
         keys = jnp.stack([jax.random.PRNGKey(s) for s in cfg.seeds])
         seed_context = self._compiled("world_model", jax.vmap(self.seed_context, (0, None)),
@@ -435,12 +438,13 @@ class Lab:
                                     for ri, r in enumerate(group.rules)}
                 if budget is None:
                     continue
-                for si, seed in enumerate(cfg.seeds):
-                    for rule in cfg.rules:
-                        pred, m = by_rule[rule]
-                        rows.append(dict(seed=seed, rule=rule, budget=budget,
-                                         prediction=pred[si],
-                                         **{k: v[si].item() for k, v in m.items()}))
+                reached = [dict(seed=seed, rule=rule, budget=budget, prediction=pred[si],
+                                **{k: v[si].item() for k, v in m.items()})
+                           for si, seed in enumerate(cfg.seeds)
+                           for rule, (pred, m) in ((r, by_rule[r]) for r in cfg.rules)]
+                rows += reached
+                if on_budget is not None:
+                    on_budget(reached)
                 progress(f"{budget} labels: {len(cfg.seeds)} seeds x {len(cfg.rules)} rules, "
                          f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from hprior_jax.lab.dataset import Dataset
-from hprior_jax.lab.learn import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, GivenLabels, Lab,
-                                  LabConfig)
+from hprior_jax.lab.learn import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM,
+                                  WORLD_MODEL_CREDITS, GivenLabels, Lab, LabConfig)
 from hprior_jax.lab.metrics import reward_quality
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -49,12 +49,37 @@ def parse_rule(name: str) -> tuple[str, float | None]:
         raise ValueError(f"rule {name!r}: write RULE@LAMBDA with a number, e.g. prior@25")
 
 
+def with_settings(config, settings: list[str] | None):
+    """`config` (a frozen dataclass) with FIELD=VALUE settings, each value read as its field's
+    current type: the world-model ablations (`wm_layers=2`, `wm_update_steps=500`)."""
+    changes = {}
+    for setting in settings or ():
+        name, eq, text = setting.partition("=")
+        name = name.strip().replace("-", "_")
+        fields = {f.name for f in dataclasses.fields(config)}
+        if not eq or name not in fields:
+            raise ValueError(f"setting {setting!r}: write FIELD=VALUE with FIELD one of "
+                             f"{', '.join(sorted(fields))}")
+        current = getattr(config, name)
+        if isinstance(current, bool):
+            if text.lower() not in ("true", "false"):
+                raise ValueError(f"setting {setting!r}: {name} is true or false")
+            changes[name] = text.lower() == "true"
+        else:
+            changes[name] = type(current)(text)
+    return dataclasses.replace(config, **changes)  # __post_init__ checks the values
+
+
 def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20,
                budgets=(25, 100, 400), queries_per_round: int | None = None,
                feed_type: str | None = None, teacher: str = "oracle", one_shot: bool = False,
-               lam: float | None = None) -> LabConfig:
+               lam: float | None = None, prior_settings: list[str] | None = None,
+               tag: str | None = None) -> LabConfig:
+    """The lab's settings from the RL preset's. `prior_settings` (FIELD=VALUE) change the
+    proposed method's config (world-model size, training amount, ...); the rules that read the
+    world model are then reported as RULE[TAG] (TAG: `tag`, or the settings), so labs of
+    several world models merge into one report (`lab_report` of several results.csv)."""
     from hprior_jax import presets
-    from hprior_jax.methods.bisim import BisimConfig
 
     known = rules()
     rule_names = list(rule_names or default_rules())
@@ -75,7 +100,10 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
                          "dataset's pairs first (`hprior label --from-lab`), then "
                          "`hprior reward-lab --labels DIR` trains on those answers")
     rl = presets.train_preset(data.task, registry.PROPOSED, preset)
-    p, prior = rl.pebble, rl.prior
+    p, prior = rl.pebble, with_settings(rl.prior, prior_settings)
+    # the bisimulation rule's λ_bisim and transitions from its method's preset
+    bisim = next((presets.train_preset(data.task, r, preset).bisim
+                  for r, _ in parsed if known[r] == "bisimulation"), None)
     if p.segment_len != data.segment_len:
         raise ValueError(f"the dataset's segments are {data.segment_len} steps, the preset's "
                          f"{p.segment_len}")
@@ -83,8 +111,13 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     # round, then `wm_update_steps` every `wm_every` env steps
     first_round = rl.num_seed_steps + p.num_unsup_steps
     updates = max(0, (data.info.get("steps", 0) - first_round) // prior.wm_every)
+    tag = tag or ",".join(prior_settings or ())
+    credits = tuple(known[r] for r, _ in parsed)
+    if tag:
+        rule_names = [f"{r}[{tag}]" if c in WORLD_MODEL_CREDITS else r
+                      for r, c in zip(rule_names, credits)]
     return LabConfig(
-        rules=tuple(rule_names), credits=tuple(known[r] for r, _ in parsed),
+        rules=tuple(rule_names), credits=credits,
         lam=prior.lam if lam is None else lam,
         clips=tuple(r in ABLATIONS and ABLATIONS[r][1] for r, _ in parsed),
         rule_lams=tuple(lam for _, lam in parsed), budgets=tuple(budgets),
@@ -95,8 +128,9 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
                             ensemble_size=p.ensemble_size,
                             # with BISIM's rule every cell has BISIM's head: the others never
                             # read it, and their reward layers are the same with or without it
-                            next_embedding_head="bisimulation" in (known[r] for r, _ in parsed)),
-        bisim_lam=BisimConfig().lam, bisim_transitions=BisimConfig().transitions_per_pair,
+                            next_embedding_head="bisimulation" in credits),
+        **({} if bisim is None else dict(bisim_lam=bisim.lam,
+                                         bisim_transitions=bisim.transitions_per_pair)),
         discount=rl.sac.discount,
         own_rules=tuple((r, registry.get(r).lab_rule(data.task, preset))
                         for r, _ in parsed if known[r] == OWN_PROGRAM),
@@ -125,15 +159,23 @@ def score(rows: list[dict], data: Dataset) -> list[dict]:
 def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
             given: GivenLabels | None = None) -> dict:
     """Runs the sweep; writes OUT/run_info.json (time, memory, settings) and the report
-    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs). `given`:
-    labels given beforehand (a person's) instead of the teacher's."""
+    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs). The report is
+    rewritten as each budget is reached, so a stopped lab keeps the budgets it reached.
+    `given`: labels given beforehand (a person's) instead of the teacher's."""
     from hprior_jax.experiments.lab_report import write_report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     lab = Lab(cfg, data, given)
-    rows = score(lab.run(progress), data)
+    rows = []
+    title = f"Reward-learning lab: {data.task}"
+
+    def report_budget(reached: list[dict]) -> None:
+        rows.extend(score(reached, data))
+        write_report(rows, out, title=title)
+
+    lab.run(progress, on_budget=report_budget)
     wall = time.perf_counter() - t0
     cells = len(cfg.seeds) * len(cfg.rules)
     info = {
@@ -155,5 +197,4 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
             writer.writeheader()
             writer.writerows(lab.diagnostics)
     (out / "run_info.json").write_text(json.dumps(info, indent=2))
-    write_report(rows, out, title=f"Reward-learning lab: {data.task}")
     return info
