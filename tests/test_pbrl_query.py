@@ -129,3 +129,20 @@ def test_select_queries_jit_vmap_and_budget_mask(rule):
 def test_unknown_rule_is_rejected():
     with pytest.raises(ValueError, match="rule"):
         Q.select_queries(jax.random.key(0), None, *_store(), 3, rule="kcenter", mb_size=5, segment_len=H)
+
+
+def test_round_queries_are_uniform_on_the_first_round_and_the_feed_after():
+    """`first` is traced: one program picks between the two rules' pairs."""
+    p = re.init_reward_ensemble(jax.random.key(1), DS, DA, RCFG)
+    args = (jax.random.key(3), p, *_store(), jnp.asarray(N_EP))
+    kw = dict(mb_size=5, segment_len=H, large_batch=4, reward_cfg=RCFG)
+    fn = jax.jit(partial(Q.round_queries, feed="disagreement", **kw))
+    for first, rule in ((True, "uniform"), (False, "disagreement")):
+        want = Q.select_queries(*args, rule=rule, **kw)
+        got = fn(*args, first=jnp.asarray(first))
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_array_equal(a, b)
+    uniform = Q.round_queries(*args, first=jnp.asarray(False), feed="uniform", **kw)
+    np.testing.assert_array_equal(uniform.obs1, Q.select_queries(*args, rule="uniform",
+                                                                 **kw).obs1)
+    assert not np.array_equal(uniform.obs1, fn(*args, first=jnp.asarray(False)).obs1)

@@ -56,7 +56,7 @@ from hprior_jax.lab.dataset import Dataset
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.bisim import BisimTransitions, bisim_term
 from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_reward
-from hprior_jax.pbrl.query import pairs_at, select_queries
+from hprior_jax.pbrl.query import pairs_at, round_queries
 from hprior_jax.pbrl.teacher import (TeacherConfig, TeacherOutput, compute_thresholds,
                                      teacher_labels)
 from hprior_jax.prior import world_model as wm
@@ -305,13 +305,11 @@ class Lab:
         if given is not None:
             pairs, out = self._given(train, given)
         else:
-            select = lambda rule: select_queries(
+            pairs = round_queries(
                 k_query, cell.reward, train.obs, train.act, train.reward,
-                jnp.int32(train.obs.shape[0]), rule=rule, mb_size=queries, segment_len=self.T,
-                large_batch=cfg.large_batch, num_queries=num_queries, reward_cfg=cfg.reward)
-            pairs = select("uniform")
-            if feed != "uniform":
-                pairs = jax.tree.map(partial(jnp.where, first), pairs, select(feed))
+                jnp.int32(train.obs.shape[0]), first=first, feed=feed, mb_size=queries,
+                segment_len=self.T, large_batch=cfg.large_batch, num_queries=num_queries,
+                reward_cfg=cfg.reward)
             thresholds = compute_thresholds(cfg.teacher, mean_return, self.T,
                                             self.data.episode_length, first_round=first)
             out = teacher_labels(k_teacher, pairs.true_r1, pairs.true_r2, cfg.teacher,

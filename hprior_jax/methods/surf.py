@@ -18,7 +18,6 @@ Defaults are alinlab/SURF's config; MRN's copy of it (`RyanLiu112/MRN`,
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
 from typing import Literal
 
 import jax
@@ -34,8 +33,8 @@ from hprior_jax.methods.pebble import (EpisodeWindow, Extension, Pebble, PebbleC
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.networks.reward_ensemble import init_reward_ensemble
 from hprior_jax.pbrl.preference import make_optimizer
-from hprior_jax.pbrl.query import sample_segment_pairs, select_queries
-from hprior_jax.pbrl.surf import surf_iterations, train_reward_surf
+from hprior_jax.pbrl.query import round_queries
+from hprior_jax.pbrl.surf import add_unlabelled, surf_iterations, train_reward_surf
 from hprior_jax.pbrl.teacher import compute_thresholds, teacher_labels
 
 MRN_COPY = dict(threshold_u=0.99, mu=4, inv_label_ratio=100)
@@ -111,13 +110,10 @@ class Surf(Pebble):
 
     def after_labels(self, ms: PebbleState, window: EpisodeWindow, num_queries, key):
         """This round's unlabelled pairs: `inv_label_ratio` x the round's queries, uniform."""
-        ratio = self.scfg.inv_label_ratio
-        n = self.pcfg.queries_per_round * ratio
-        u = sample_segment_pairs(key, window.obs, window.act, window.true_reward, window.count,
-                                 n, self.stored_segment_len)
-        batch = preferences.PreferenceBatch(u.obs1, u.act1, u.obs2, u.act2,
-                                            jnp.zeros((n,), jnp.int32))
-        pool = preferences.add(ms.ext.pool, batch, jnp.arange(n) < num_queries * ratio)
+        pool = add_unlabelled(ms.ext.pool, key, window.obs, window.act, window.true_reward,
+                              window.count, queries=self.pcfg.queries_per_round,
+                              num_queries=num_queries, ratio=self.scfg.inv_label_ratio,
+                              segment_len=self.stored_segment_len)
         return ms.replace(ext=ms.ext.replace(pool=pool))
 
     def _train_reward(self, rs, ms: PebbleState, key):
@@ -171,13 +167,10 @@ class SurfLabRule:
               queries: int, feed: str, episode_length: int):
         key, k_query, k_teacher, k_pool, k_train = jax.random.split(cell.key, 5)
         episodes = jnp.int32(train.obs.shape[0])
-        select = lambda rule: select_queries(
-            k_query, cell.reward, train.obs, train.act, train.reward, episodes, rule=rule,
-            mb_size=queries, segment_len=self.stored_len, large_batch=lab.large_batch,
-            num_queries=num_queries, reward_cfg=lab.reward)
-        pairs = select("uniform")
-        if feed != "uniform":
-            pairs = jax.tree.map(partial(jnp.where, first), pairs, select(feed))
+        pairs = round_queries(
+            k_query, cell.reward, train.obs, train.act, train.reward, episodes, first=first,
+            feed=feed, mb_size=queries, segment_len=self.stored_len,
+            large_batch=lab.large_batch, num_queries=num_queries, reward_cfg=lab.reward)
         judged = slice(self.cfg.window, self.stored_len - self.cfg.window)
         thresholds = compute_thresholds(lab.teacher, mean_return, self.segment_len,
                                         episode_length, first_round=first)
@@ -185,12 +178,9 @@ class SurfLabRule:
                              lab.teacher, thresholds)
         prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), out.valid & pairs.mask)
-        n = queries * self.cfg.inv_label_ratio
-        u = sample_segment_pairs(k_pool, train.obs, train.act, train.reward, episodes, n,
-                                 self.stored_len)
-        pool = preferences.add(cell.pool, preferences.PreferenceBatch(
-            u.obs1, u.act1, u.obs2, u.act2, jnp.zeros((n,), jnp.int32)),
-            jnp.arange(n) < num_queries * self.cfg.inv_label_ratio)
+        pool = add_unlabelled(cell.pool, k_pool, train.obs, train.act, train.reward, episodes,
+                              queries=queries, num_queries=num_queries,
+                              ratio=self.cfg.inv_label_ratio, segment_len=self.stored_len)
         p, s = lab.preference, self.cfg
         params, opt, m = train_reward_surf(
             cell.reward, cell.opt, prefs, pool, k_train,

@@ -18,6 +18,8 @@ PEBBLE's first round is always uniform; that choice belongs to the caller.
 from __future__ import annotations
 
 import flax.struct
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 
@@ -143,3 +145,17 @@ def select_queries(key: jax.Array, params: Params, obs: jax.Array, act: jax.Arra
     if num_queries is not None:
         pairs = pairs.replace(mask=jnp.arange(mb_size) < num_queries)
     return pairs
+
+
+def round_queries(key: jax.Array, params: Params, obs: jax.Array, act: jax.Array,
+                  true_reward: jax.Array, num_episodes: jax.Array, *, first: jax.Array,
+                  feed: str, **kw) -> SegmentPairs:
+    """`select_queries` of a round whose being the first is traced (`first`): uniform on the
+    first round (as BPref), `feed` after. Both are drawn and `first` picks, so every round
+    runs one compiled program. `kw`: select_queries' other arguments."""
+    select = partial(select_queries, key, params, obs, act, true_reward, num_episodes, **kw)
+    pairs = select(rule="uniform")
+    if feed == "uniform":
+        return pairs
+    return jax.tree.map(partial(jnp.where, first), pairs, select(rule=feed))
+

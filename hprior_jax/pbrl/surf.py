@@ -31,15 +31,27 @@ import jax.numpy as jnp
 import optax
 from jax import lax
 
-from hprior_jax.buffers.preferences import PreferenceBatch, PreferenceStore
+from hprior_jax.buffers.preferences import PreferenceBatch, PreferenceStore, add
 from hprior_jax.networks.reward_ensemble import Params, RewardConfig, per_member_rewards
 from hprior_jax.pbrl.preference import bt_loss_from_returns, member_permutations
+from hprior_jax.pbrl.query import sample_segment_pairs
 
 
 def surf_iterations(reward_update: int, labelled: jax.Array, batch_size: int = 128) -> jax.Array:
     """ceil(reward_update * labelled / batch_size), int32 (train_PEBBLE_semi_dataaug.py)."""
     n = jnp.asarray(labelled, jnp.int32) * reward_update
     return ((n + batch_size - 1) // batch_size).astype(jnp.int32)
+
+
+def add_unlabelled(pool: PreferenceStore, key: jax.Array, obs, act, true_reward, num_episodes,
+                   *, queries: int, num_queries, ratio: int, segment_len: int) -> PreferenceStore:
+    """A round's unlabelled pairs into the pool: `ratio` (inv_label_ratio) x the round's
+    queries, uniform, of `segment_len` (stored) steps; `queries` static, `num_queries` (<=,
+    traced) the ones the round really asked. Their labels are never read."""
+    n = queries * ratio
+    u = sample_segment_pairs(key, obs, act, true_reward, num_episodes, n, segment_len)
+    batch = PreferenceBatch(u.obs1, u.act1, u.obs2, u.act2, jnp.zeros((n,), jnp.int32))
+    return add(pool, batch, jnp.arange(n) < num_queries * ratio)
 
 
 def _check_crop(stored_len: int, segment_len: int, crop_range: int) -> None:
