@@ -158,8 +158,15 @@ def test_prior_config_errors(tmp_path):
         PriorConfig(lam=-1.0)
     with pytest.raises(ValueError, match="--algo rvar"):
         PriorConfig(wm_pretrain_steps=0)
+    with pytest.raises(ValueError, match="--prior.wm-order"):
+        PriorConfig(wm_order="dynamics_first")
     cfg = presets.train_preset("cheetah_run", "prior", "paper")
     assert cfg.prior.lam == 5.0 and cfg.prior.wm_layers == 10 and cfg.prior.wm_every == 2000
+    assert cfg.prior.wm_order == "joint"  # the appendix's pre-training; TWM's is a flag
+    from hprior_jax.cli import _parse_config
+
+    assert _parse_config(cfg, ["--prior.wm-order", "observation_first"]
+                         ).prior.wm_order == "observation_first"
     assert presets.train_preset("drawer_open", "prior", "paper").prior.lam == 1000.0
 
 

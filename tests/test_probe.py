@@ -33,3 +33,16 @@ def test_a_trained_world_model_credits_the_critical_step():
     assert out["reveal_mse"] < 0.5 * out["reveal_mse_predict_zero"], out
     assert out["alpha_at_t_star"]["mean"] > 10 * out["uniform"], out
     assert out["alpha_at_t_star"]["mean"] > out["alpha_last_8"]["mean"], out
+
+
+@pytest.mark.slow  # CI time (~20 s of compiling); wm.pretrain's order is tested fast
+def test_probe_takes_the_pretraining_order_and_world_model_settings():
+    """The probe's ablations: `order` and FIELD=VALUE settings reach the world model it
+    trains (here tiny, two steps of each part: the wiring, not the finding)."""
+    tiny = ("wm_layers=1", "wm_embed=16", "wm_ff=32", "wm_obs_hidden=16", "wm_head_hidden=16",
+            "wm_batch=4", "wm_lr=0.001")
+    out = run_probe(ProbeConfig(episodes=8, steps=2, order="observation_first",
+                                settings=tiny), seed=0)
+    assert out["world_model"] == {"layers": 1, "embed": 16, "lr": 0.001}
+    assert out["config"]["order"] == "observation_first"
+    assert np.isfinite(out["reveal_mse"]) and 0.0 <= out["alpha_at_t_star"]["mean"] <= 1.0

@@ -120,8 +120,12 @@ def test_prior_settings_change_the_world_model_and_tag_the_rules_that_read_it(da
     assert tagged.rules[1] == "prior[deep]"
     assert lab_config(toy, "smoke", names, prior_settings=["clip_targets=true"]
                       ).world_model == base.world_model
+    assert base.wm_order == "joint" and lab_config(
+        toy, "smoke", names, prior_settings=["wm_order=observation_first"]
+    ).wm_order == "observation_first"
     for bad, match in ((["wm_layer=1"], "FIELD=VALUE"), (["wm_layers"], "FIELD=VALUE"),
-                       (["clip_targets=yes"], "true or false"), (["wm_layers=0"], "positive")):
+                       (["clip_targets=yes"], "true or false"), (["wm_layers=0"], "positive"),
+                       (["wm_order=dynamics_first"], "wm-order")):
         with pytest.raises(ValueError, match=match):
             lab_config(toy, "smoke", names, prior_settings=bad)
 

@@ -192,6 +192,31 @@ def test_train_updates_only_the_requested_parts_and_learns():
                  observation_model=False, dynamics_model=False)
 
 
+def test_pretrain_joint_is_both_at_once_and_observation_first_is_the_two_in_turn():
+    """`pretrain`: "joint" = train(both); "observation_first" = train(observation model) with
+    the first half of its key's split, then train(dynamics) on the result with the second."""
+    st0 = _init(jax.random.key(0), CFG)
+    key = jax.random.key(4)
+    pretrain = partial(wm.pretrain, obs_buf=OBS_BUF, act_buf=ACT_BUF, size=SIZE, cfg=CFG,
+                       episode_len=EP, num_steps=STEPS)
+    joint, _ = jax.jit(partial(pretrain, order="joint"))(st0, key)
+    both, _ = _train(st0, key, OBS_BUF, ACT_BUF, SIZE, observation_model=True,
+                     dynamics_model=True)
+    assert _leaves_equal(joint.params, both.params)
+    first, m = jax.jit(partial(pretrain, order="observation_first"))(st0, key)
+    k_obs, k_dyn = jax.random.split(key)
+    obs_only, _ = _train(st0, k_obs, OBS_BUF, ACT_BUF, SIZE, observation_model=True,
+                         dynamics_model=False)
+    then_dyn, _ = _train(obs_only, k_dyn, OBS_BUF, ACT_BUF, SIZE, observation_model=False,
+                         dynamics_model=True)
+    assert _leaves_equal(first.params, then_dyn.params)
+    assert int(first.obs_steps) == int(first.dyn_steps) == STEPS
+    assert {"prior/wm_obs_loss", "prior/wm_dyn_loss"} <= set(m)
+    assert not _leaves_equal(first.params.dyn, joint.params.dyn)
+    with pytest.raises(ValueError, match="order"):
+        pretrain(st0, key, order="dynamics_first")
+
+
 def test_dynamics_gradient_leaves_the_observation_model_alone():
     """The dynamics loss has no gradient w.r.t. the observation model (z enters under
     stop_gradient, the decoder is frozen), but does w.r.t. the dynamics params."""

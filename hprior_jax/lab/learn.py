@@ -101,6 +101,7 @@ class LabConfig:
     world_model: wm.WorldModelConfig | None = None
     wm_pretrain_steps: int = 300
     wm_steps: int = 600  # dynamics-only steps after the pre-training
+    wm_order: str = "joint"  # the pre-training's order (wm.pretrain)
     attention_query: str = "action"
     profile_segments: int = 256  # training segments the positional profile averages
 
@@ -252,13 +253,15 @@ class Lab:
         k_init, k_pre, k_dyn, k_seg = jax.random.split(jax.random.fold_in(key, wm.RANDOM_STREAM), 4)
         obs, act = train.obs, train.act
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
-        train = partial(wm.train, obs_buf=flat(obs), act_buf=flat(act),
-                        size=jnp.int32(obs.shape[0] * obs.shape[1]), cfg=cfg.world_model,
-                        episode_len=obs.shape[1], dynamics_model=True)
+        data = dict(obs_buf=flat(obs), act_buf=flat(act),
+                    size=jnp.int32(obs.shape[0] * obs.shape[1]), cfg=cfg.world_model,
+                    episode_len=obs.shape[1])
         state = wm.init(k_init, cfg.world_model)
-        state, _ = train(state, k_pre, num_steps=cfg.wm_pretrain_steps, observation_model=True)
+        state, _ = wm.pretrain(state, k_pre, num_steps=cfg.wm_pretrain_steps,
+                               order=cfg.wm_order, **data)
         if cfg.wm_steps:
-            state, _ = train(state, k_dyn, num_steps=cfg.wm_steps, observation_model=False)
+            state, _ = wm.train(state, k_dyn, num_steps=cfg.wm_steps, observation_model=False,
+                                dynamics_model=True, **data)
         seg_obs, seg_act = wm.sample_segments(
             k_seg, flat(obs), flat(act), jnp.int32(obs.shape[0] * obs.shape[1]),
             episode_len=obs.shape[1], batch_size=cfg.profile_segments, segment_len=self.T)

@@ -10,6 +10,7 @@ that ends just before the reveal should then put its mass on t*, not on the last
     gate_t = 1[t = t*], reveal_t = 1[t = t* + delay], value_t = a_{t*} · reveal_t
 
     python -m hprior_jax.lab.probe --steps 3000 [--delay 30]   # prints the numbers as JSON
+    python -m hprior_jax.lab.probe --order observation_first --prior-set wm_lr=0.001
 """
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ class ProbeConfig:
     delay: int = 30  # steps from the gate to the reveal
     segment_len: int = 50  # α's segment: the reduced preset's query length
     steps: int = 3000  # world-model updates (observation and dynamics models together)
+    order: str = "joint"  # or "observation_first": `steps` of each model, one after the other
+    settings: tuple[str, ...] = ()  # FIELD=VALUE over the reduced preset's PriorConfig
 
 
 def probe_episodes(key: jax.Array, n: int, cfg: ProbeConfig):
@@ -53,19 +56,22 @@ def probe_episodes(key: jax.Array, n: int, cfg: ProbeConfig):
     return jnp.stack([gate, reveal, value, wave], -1), act, t_star
 
 
-def world_model_config(segment_len: int) -> wm.WorldModelConfig:
-    """The reduced preset's world model (hprior_jax.methods.prior.REDUCED_WORLD_MODEL)."""
+def world_model_config(segment_len: int, settings=()) -> wm.WorldModelConfig:
+    """The reduced preset's world model (hprior_jax.methods.prior.REDUCED_WORLD_MODEL), with
+    `settings` (FIELD=VALUE of PriorConfig, e.g. wm_layers=4, wm_lr=0.001)."""
+    from hprior_jax.lab.sweep import with_settings
     from hprior_jax.methods.prior import REDUCED_WORLD_MODEL, PriorConfig
 
     sizes = {k: v for k, v in REDUCED_WORLD_MODEL.items() if not k.endswith("_steps")}
-    return PriorConfig(**sizes).world_model(OBS_SIZE, ACT_SIZE, segment_len)
+    prior = with_settings(PriorConfig(**sizes), list(settings))
+    return prior.world_model(OBS_SIZE, ACT_SIZE, segment_len)
 
 
 def run_probe(cfg: ProbeConfig, seed: int = 0) -> dict:
     """Trains the world model on probe episodes; returns α's mass on t* for segments ending
     just before the reveal (and on the last 8 steps, and uniform's share), and the error of
     the predicted reveal value against predicting 0."""
-    wcfg = world_model_config(cfg.segment_len)
+    wcfg = world_model_config(cfg.segment_len, cfg.settings)
     k_data, k_test, k_init, k_train = jax.random.split(jax.random.PRNGKey(seed), 4)
     obs, act, _ = probe_episodes(k_data, cfg.episodes, cfg)
     flat = lambda x: x.reshape((-1,) + x.shape[2:])
@@ -73,9 +79,9 @@ def run_probe(cfg: ProbeConfig, seed: int = 0) -> dict:
     @jax.jit
     def train(key):
         state = wm.init(k_init, wcfg)
-        return wm.train(state, key, flat(obs), flat(act), jnp.int32(obs.shape[0] * obs.shape[1]),
-                        cfg=wcfg, episode_len=cfg.episode_len, num_steps=cfg.steps,
-                        observation_model=True, dynamics_model=True)
+        return wm.pretrain(state, key, flat(obs), flat(act),
+                           jnp.int32(obs.shape[0] * obs.shape[1]), cfg=wcfg,
+                           episode_len=cfg.episode_len, num_steps=cfg.steps, order=cfg.order)
 
     t0 = time.perf_counter()
     state, metrics = jax.block_until_ready(train(k_train))
@@ -101,7 +107,7 @@ def run_probe(cfg: ProbeConfig, seed: int = 0) -> dict:
                                  wcfg))
     return {
         "config": asdict(cfg), "world_model": {"layers": wcfg.num_layers,
-                                               "embed": wcfg.embed_dim},
+                                               "embed": wcfg.embed_dim, "lr": wcfg.dyn_lr},
         "train_seconds": round(train_s, 1), "segments": n_test,
         "final_dyn_loss": float(metrics["prior/wm_dyn_loss"]),
         "alpha_at_t_star": _mean_ci(alpha[:, at]),
@@ -129,9 +135,12 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=ProbeConfig.episodes)
     parser.add_argument("--delay", type=int, default=ProbeConfig.delay)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--order", default="joint", choices=wm.PRETRAIN_ORDERS)
+    parser.add_argument("--prior-set", nargs="+", default=(), metavar="FIELD=VALUE",
+                        help="the world model's settings, e.g. wm_layers=4 wm_lr=0.001")
     args = parser.parse_args()
-    out = run_probe(ProbeConfig(episodes=args.episodes, steps=args.steps, delay=args.delay),
-                    args.seed)
+    out = run_probe(ProbeConfig(episodes=args.episodes, steps=args.steps, delay=args.delay,
+                                order=args.order, settings=tuple(args.prior_set)), args.seed)
     print(json.dumps(out, indent=2))
 
 

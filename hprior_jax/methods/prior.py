@@ -57,6 +57,10 @@ class PriorConfig:
     not give this number; ours, with `wm_update_steps`, keeps ~1 world-model step per 20 env steps."""
     wm_update_steps: int = 100
     """Dynamics-model gradient steps every `wm_every` env steps (not given by the paper)."""
+    wm_order: wm.PretrainOrder = "joint"
+    """Pre-training order: "joint" (appendix C.3: observation and dynamics model together for
+    `wm_pretrain_steps`) or "observation_first" (an ablation, TWM's order: the observation
+    model alone for `wm_pretrain_steps`, then the dynamics alone as long on its encodings)."""
     attention_query: Literal["action", "state"] = "action"
     """Which final-step token's attention row is read (see prior/attention.py for why action)."""
     exclude_own_step: bool = False
@@ -93,6 +97,8 @@ class PriorConfig:
         if self.wm_pretrain_steps < 1:
             raise ValueError("--prior.wm-pretrain-steps must be >= 1: attention from an untrained "
                              "world model is noise (use --algo rvar for no world model)")
+        if self.wm_order not in wm.PRETRAIN_ORDERS:
+            raise ValueError(f"--prior.wm-order must be one of {wm.PRETRAIN_ORDERS}")
         if self.wm_update_steps < 0:
             raise ValueError("--prior.wm-update-steps must be >= 0")
         if not 0.0 <= self.wm_dropout < 1.0:
@@ -147,11 +153,14 @@ class WorldModelPrior(Extension):
         Metrics: the training losses and, after the update, `diagnose_world_model`'s."""
         p, ext = self.prior_cfg, rs.method.ext
         key = jax.random.fold_in(rs.key, wm.RANDOM_STREAM)
-        state, metrics = wm.train(
-            ext.wm, key, rs.replay.obs, rs.replay.action,
-            rs.replay.size, cfg=self.wm_cfg, episode_len=self.kit.env.episode_length,
-            num_steps=p.wm_pretrain_steps if pretrain else p.wm_update_steps,
-            observation_model=pretrain, dynamics_model=True)
+        data = dict(obs_buf=rs.replay.obs, act_buf=rs.replay.action, size=rs.replay.size,
+                    cfg=self.wm_cfg, episode_len=self.kit.env.episode_length)
+        if pretrain:
+            state, metrics = wm.pretrain(ext.wm, key, num_steps=p.wm_pretrain_steps,
+                                         order=p.wm_order, **data)
+        else:
+            state, metrics = wm.train(ext.wm, key, num_steps=p.wm_update_steps,
+                                      observation_model=False, dynamics_model=True, **data)
         metrics = {**metrics, **self.diagnose_world_model(
             state.params, rs.replay, jax.random.fold_in(key, DIAGNOSTICS_STREAM))}
         return rs.replace(method=rs.method.replace(ext=ext.replace(wm=state))), metrics

@@ -32,6 +32,7 @@ train the observation model once on the pre-training data and afterwards only th
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Literal, get_args
 
 import flax.linen as nn
@@ -284,6 +285,29 @@ def update_dynamics(state: WorldModelState, obs: jax.Array, act: jax.Array, key:
     m = {**m, "prior/wm_dyn_grad_norm": optax.global_norm(g)}
     return state.replace(params=state.params.replace(dyn=p), dyn_opt=opt,
                          dyn_steps=state.dyn_steps + 1), m
+
+
+PretrainOrder = Literal["joint", "observation_first"]
+PRETRAIN_ORDERS = get_args(PretrainOrder)
+
+
+def pretrain(state: WorldModelState, key: jax.Array, obs_buf: jax.Array, act_buf: jax.Array,
+             size: jax.Array, *, cfg: WorldModelConfig, episode_len: int, num_steps: int,
+             order: PretrainOrder = "joint"):
+    """The pre-training at the first feedback round. "joint": `num_steps` steps of both
+    models together (appendix C.3 trains both then). "observation_first" (TWM's order, an
+    ablation): the observation model alone for `num_steps`, then the dynamics model alone for
+    `num_steps` on the encodings it then gives (frozen). -> (state, metrics of both parts)."""
+    if order not in PRETRAIN_ORDERS:
+        raise ValueError(f"order={order!r}; choose one of {PRETRAIN_ORDERS}")
+    run = partial(train, obs_buf=obs_buf, act_buf=act_buf, size=size, cfg=cfg,
+                  episode_len=episode_len, num_steps=num_steps)
+    if order == "joint":
+        return run(state, key, observation_model=True, dynamics_model=True)
+    k_obs, k_dyn = jax.random.split(key)
+    state, m_obs = run(state, k_obs, observation_model=True, dynamics_model=False)
+    state, m_dyn = run(state, k_dyn, observation_model=False, dynamics_model=True)
+    return state, {**m_obs, **m_dyn}
 
 
 def sample_segments(key: jax.Array, obs: jax.Array, act: jax.Array, size: jax.Array, *,
