@@ -118,13 +118,20 @@ def test_prior_settings_change_the_world_model_and_tag_the_rules_that_read_it(da
     assert cfg.rule_lams == base.rule_lams and cfg.credits == base.credits
     tagged = lab_config(toy, "smoke", names, prior_settings=["wm_layers=2"], tag="deep")
     assert tagged.rules[1] == "prior[deep]"
-    assert lab_config(toy, "smoke", names, prior_settings=["clip_targets=true"]
-                      ).world_model == base.world_model
+    assert lab_config(toy, "smoke", names, prior_settings=["wm_lr=0.001"]
+                      ).world_model.num_layers == base.world_model.num_layers
     assert base.wm_order == "joint" and lab_config(
         toy, "smoke", names, prior_settings=["wm_order=observation_first"]
     ).wm_order == "observation_first"
+    from hprior_jax.lab.sweep import with_settings
+    from hprior_jax.methods.prior import PriorConfig
+
+    assert with_settings(PriorConfig(), ["clip_targets=True"]).clip_targets is True
+    with pytest.raises(ValueError, match="true or false"):
+        with_settings(PriorConfig(), ["clip_targets=yes"])  # not bool("yes")
     for bad, match in ((["wm_layer=1"], "FIELD=VALUE"), (["wm_layers"], "FIELD=VALUE"),
-                       (["clip_targets=yes"], "true or false"), (["wm_layers=0"], "positive"),
+                       (["wm_dropout=x"], "x"), (["wm_layers=0"], "positive"),
+                       (["clip-targets=true"], "prior_clipped"),
                        (["wm_order=dynamics_first"], "wm-order")):
         with pytest.raises(ValueError, match=match):
             lab_config(toy, "smoke", names, prior_settings=bad)

@@ -99,6 +99,12 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         raise ValueError("the lab's teacher labels as the rounds go: a person labels the "
                          "dataset's pairs first (`hprior label --from-lab`), then "
                          "`hprior reward-lab --labels DIR` trains on those answers")
+    as_rules = {"exclude_own_step": "prior_no_own_step", "clip_targets": "prior_clipped"}
+    for setting in prior_settings or ():
+        name = setting.partition("=")[0].strip().replace("-", "_")
+        if name in as_rules:
+            raise ValueError(f"{name} is a lab rule, not a setting: --rules ... "
+                             f"{as_rules[name]}")
     rl = presets.train_preset(data.task, registry.PROPOSED, preset)
     p, prior = rl.pebble, with_settings(rl.prior, prior_settings)
     # the bisimulation rule's λ_bisim and transitions from its method's preset
