@@ -166,3 +166,29 @@ def test_main_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
     assert "1 rows found in several files differ" in capsys.readouterr().err
     text = (tmp_path / "both" / "report.md").read_text()
     assert "- better − pebble at" in text and "- same − pebble at" in text
+
+
+def test_pairs_compare_any_two_rules_as_the_reference_comparison_does(tmp_path):
+    """--pairs A:B: A − B paired by seed. better:pebble must equal the summary's comparison
+    with pebble, number for number; a pair of rules that never ran together is an error."""
+    rows = _synthetic_rows()
+    write_report(rows, tmp_path, pairs=[("better", "pebble"), ("same", "better")])
+    summary = {(e["metric"], e["budget"], e["rule"]): e for e in summarize(rows)}
+    with (tmp_path / "pairs.csv").open() as f:
+        pairs = list(csv.DictReader(f))
+    assert len(pairs) == 2 * len(METRICS) * len(BUDGETS)
+    for p in pairs:
+        if p["versus"] == "pebble":
+            want = summary[(p["metric"], int(p["budget"]), "better")]
+            for k in ("diff", "diff_lo", "diff_hi", "p", "mde80"):
+                assert float(p[k]) == pytest.approx(want[f"vs_pebble_{k}"], nan_ok=True)
+        else:
+            assert float(p["diff"]) == pytest.approx(-0.1, abs=1e-9)
+    text = (tmp_path / "report.md").read_text()
+    assert "## Paired differences between rules" in text
+    assert "| better − pebble |" in text and "- same − better at 25 labels:" in text
+    with pytest.raises(ValueError, match="both rules"):
+        write_report(rows, tmp_path / "x", pairs=[("better", "oracle")])
+    assert lab_report.main([str(tmp_path / "results.csv"), str(tmp_path / "again"), "--pairs",
+                            "better:pebble", "same:better"])
+    assert (tmp_path / "again" / "pairs.csv").read_bytes() == (tmp_path / "pairs.csv").read_bytes()

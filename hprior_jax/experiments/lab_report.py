@@ -252,30 +252,60 @@ def _mean_cell(entry: dict) -> str:
     return f"{entry['mean']:.3f} [{entry['ci_lo']:.3f}, {entry['ci_hi']:.3f}]"
 
 
-def _difference_cell(entry: dict) -> str:
-    c = _comparison_of(entry)
+def _difference_text(c: dict) -> str:
     if c["n"] < 2:
         return f"not testable, n={c['n']}"
     return (f"{c['diff']:+.3f} [{c['diff_lo']:.3f}, {c['diff_hi']:.3f}], {_p_text(c['p'])}, "
             f"n={c['n']}, MDE80={c['mde80']:.3f}")
 
 
-def comparison_sentence(entry: dict) -> str:
-    """Plain-language reading of one comparison with pebble; a difference the test does not
-    detect is stated as such, with the smallest difference this n would have detected."""
-    c = _comparison_of(entry)
-    head = f"{entry['rule']} − {REFERENCE} at {entry['budget']} labels"
+def _difference_cell(entry: dict) -> str:
+    return _difference_text(_comparison_of(entry))
+
+
+def _sentence(rule: str, versus: str, budget: int, c: dict) -> str:
+    head = f"{rule} − {versus} at {budget} labels"
     if c["n"] < 2:
         return f"{head}: not testable (n = {c['n']} paired seeds)"
     estimate = (f"{c['diff']:+.3f} [{c['diff_lo']:.3f}, {c['diff_hi']:.3f}] "
                 f"({_p_text(c['p'])}, n = {c['n']})")
     if c["p"] < ALPHA:
         direction = "higher" if c["diff"] > 0 else "lower"
-        return f"{head}: {estimate}: {entry['rule']} {direction} than {REFERENCE}"
+        return f"{head}: {estimate}: {rule} {direction} than {versus}"
     # MDE80 is NaN only when every paired difference is identical (sd 0).
     detectable = (f"; this n detects ≥ {c['mde80']:.3f} with 80% power"
                   if math.isfinite(c["mde80"]) else "")
     return f"{head}: {estimate}: no difference detected{detectable}"
+
+
+def comparison_sentence(entry: dict) -> str:
+    """Plain-language reading of one comparison with pebble; a difference the test does not
+    detect is stated as such, with the smallest difference this n would have detected."""
+    return _sentence(entry["rule"], REFERENCE, entry["budget"], _comparison_of(entry))
+
+
+def pair_comparisons(rows, pairs) -> list[dict]:
+    """The paired comparison of rule A − rule B for each (A, B) in `pairs`, at every (task,
+    metric, budget) both ran: dicts of task, metric, budget, rule (A), versus (B) and
+    `paired_comparison`'s fields. E.g. (prior, positional): does the world model's α beat
+    its own mean profile?"""
+    cells = _cells(rows)
+    metrics = [m for m in METRICS if any(m in row for row in rows)]
+    out = []
+    for a, b in pairs:
+        for task, rule, budget in sorted(cells):
+            if rule != a or (task, b, budget) not in cells:
+                continue
+            for metric in metrics:
+                c = paired_comparison(_by_seed(cells[(task, b, budget)], metric),
+                                      _by_seed(cells[(task, a, budget)], metric))
+                out.append({"task": task, "metric": metric, "budget": budget, "rule": a,
+                            "versus": b, **c})
+    missing = [f"{a}:{b}" for a, b in pairs
+               if not any(e["rule"] == a and e["versus"] == b for e in out)]
+    if missing:
+        raise ValueError(f"pairs {missing}: both rules must have run at some budget")
+    return out
 
 
 def _table(entries: list[dict], cell) -> list[str]:
@@ -310,7 +340,18 @@ def _by_task_metric(summary: list[dict]) -> dict[tuple[str, str], list[dict]]:
     return groups
 
 
-def _markdown(rows, summary: list[dict], title: str) -> str:
+def _pairs_markdown(pairs: list[dict]) -> list[str]:
+    lines = ["## Paired differences between rules", ""]
+    for (task, metric), entries in _by_task_metric(pairs).items():
+        lines += [f"### {task}: {METRIC_LABEL[metric]}", ""]
+        named = [{**e, "rule": f"{e['rule']} − {e['versus']}"} for e in entries]
+        lines += _table(named, _difference_text) + [""]
+        lines += [f"- {_sentence(e['rule'], e['versus'], e['budget'], e)}"
+                  for e in entries] + [""]
+    return lines
+
+
+def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = ()) -> str:
     lines = [f"# {title}", "", _method_line(rows), ""]
     current_task = None
     for (task, metric), entries in _by_task_metric(summary).items():
@@ -325,22 +366,28 @@ def _markdown(rows, summary: list[dict], title: str) -> str:
             lines += [f"Paired differences vs {REFERENCE}:", ""]
             lines += _table(comparisons, _difference_cell) + [""]
             lines += [f"- {comparison_sentence(e)}" for e in comparisons] + [""]
+    if pairs:
+        lines += _pairs_markdown(pairs)
     return "\n".join(lines)
 
 
-def write_report(rows, out_dir, title: str = DEFAULT_TITLE) -> Path:
+def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=()) -> Path:
     """Writes summary.csv, results.csv (the raw rows), <task>_<metric>.png and report.md to
-    `out_dir`; returns the path of report.md."""
+    `out_dir`, and with `pairs` ((rule A, rule B), ...) pairs.csv and a report section of
+    A − B; returns the path of report.md."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarize(rows)
     _write_csv(out_dir / "results.csv", rows)
     _write_csv(out_dir / "summary.csv", summary)
+    compared = pair_comparisons(rows, pairs)
+    if compared:
+        _write_csv(out_dir / "pairs.csv", compared)
     for (task, metric), entries in _by_task_metric(summary).items():
         plot_metric(entries, out_dir / png_name(task, metric),
                     f"{title}: {task}, {METRIC_LABEL[metric]}")
     report = out_dir / "report.md"
-    report.write_text(_markdown(rows, summary, title))
+    report.write_text(_markdown(rows, summary, title, compared))
     return report
 
 
@@ -351,14 +398,20 @@ def main(argv=None) -> Path:
                     "the results.csv of several labs (same dataset and seeds) into one report.")
     parser.add_argument("paths", type=Path, nargs="+", metavar="RESULTS_CSV... OUT_DIR")
     parser.add_argument("--title", default=DEFAULT_TITLE)
+    parser.add_argument("--pairs", nargs="+", default=(), metavar="A:B",
+                        help="also compare rule A with rule B (A − B, paired by seed), e.g. "
+                             "prior:positional prior:rvar")
     args = parser.parse_args(argv)
+    pairs = [tuple(p.split(":")) for p in args.pairs]
+    if any(len(p) != 2 for p in pairs):
+        parser.error("write each pair as A:B")
     if len(args.paths) < 2:
         parser.error("give one or more results.csv and then the output folder")
     rows, differing = merge_results(args.paths[:-1])
     if differing:
         print(f"{differing} rows found in several files differ in a metric: the first "
               "file's are kept", file=sys.stderr)
-    report = write_report(rows, args.paths[-1], args.title)
+    report = write_report(rows, args.paths[-1], args.title, pairs)
     print(report)
     return report
 
