@@ -49,14 +49,17 @@ def parse_rule(name: str) -> tuple[str, float | None]:
         raise ValueError(f"rule {name!r}: write RULE@LAMBDA with a number, e.g. prior@25")
 
 
-def with_settings(config, settings: list[str] | None):
+def with_settings(config, settings: list[str] | None, refused: dict[str, str] | None = None):
     """`config` (a frozen dataclass) with FIELD=VALUE settings, each value read as its field's
-    current type: the world-model ablations (`wm_layers=2`, `wm_update_steps=500`)."""
+    current type: the world-model ablations (`wm_layers=2`, `wm_update_steps=500`).
+    `refused`: {field: why it may not be set here}."""
+    fields = {f.name for f in dataclasses.fields(config)}
     changes = {}
     for setting in settings or ():
         name, eq, text = setting.partition("=")
         name = name.strip().replace("-", "_")
-        fields = {f.name for f in dataclasses.fields(config)}
+        if name in (refused or {}):
+            raise ValueError(f"setting {setting!r}: {refused[name]}")
         if not eq or name not in fields:
             raise ValueError(f"setting {setting!r}: write FIELD=VALUE with FIELD one of "
                              f"{', '.join(sorted(fields))}")
@@ -99,14 +102,11 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         raise ValueError("the lab's teacher labels as the rounds go: a person labels the "
                          "dataset's pairs first (`hprior label --from-lab`), then "
                          "`hprior reward-lab --labels DIR` trains on those answers")
-    as_rules = {"exclude_own_step": "prior_no_own_step", "clip_targets": "prior_clipped"}
-    for setting in prior_settings or ():
-        name = setting.partition("=")[0].strip().replace("-", "_")
-        if name in as_rules:
-            raise ValueError(f"{name} is a lab rule, not a setting: --rules ... "
-                             f"{as_rules[name]}")
     rl = presets.train_preset(data.task, registry.PROPOSED, preset)
-    p, prior = rl.pebble, with_settings(rl.prior, prior_settings)
+    # PRIOR's two ablations are lab rules, so a lab can hold them beside PRIOR
+    as_rules = {"exclude_own_step": "a lab rule, not a setting: --rules ... prior_no_own_step",
+                "clip_targets": "a lab rule, not a setting: --rules ... prior_clipped"}
+    p, prior = rl.pebble, with_settings(rl.prior, prior_settings, refused=as_rules)
     # the bisimulation rule's λ_bisim and transitions from its method's preset
     bisim = next((presets.train_preset(data.task, r, preset).bisim
                   for r, _ in parsed if known[r] == "bisimulation"), None)

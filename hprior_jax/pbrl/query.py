@@ -17,9 +17,9 @@ PEBBLE's first round is always uniform; that choice belongs to the caller.
 """
 from __future__ import annotations
 
-import flax.struct
 from functools import partial
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 
@@ -158,4 +158,3 @@ def round_queries(key: jax.Array, params: Params, obs: jax.Array, act: jax.Array
     if feed == "uniform":
         return pairs
     return jax.tree.map(partial(jnp.where, first), pairs, select(rule=feed))
-
