@@ -439,10 +439,13 @@ class Lab:
                                     for ri, r in enumerate(group.rules)}
                 if budget is None:
                     continue
-                reached = [dict(seed=seed, rule=rule, budget=budget, prediction=pred[si],
-                                **{k: v[si].item() for k, v in m.items()})
-                           for si, seed in enumerate(cfg.seeds)
-                           for rule, (pred, m) in ((r, by_rule[r]) for r in cfg.rules)]
+                reached = []
+                for si, seed in enumerate(cfg.seeds):
+                    for rule in cfg.rules:
+                        pred, m = by_rule[rule]
+                        reached.append(dict(seed=seed, rule=rule, budget=budget,
+                                            prediction=pred[si],
+                                            **{k: v[si].item() for k, v in m.items()}))
                 rows += reached
                 if on_budget is not None:
                     on_budget(reached)
