@@ -168,6 +168,28 @@ def test_main_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
     assert "- better − pebble at" in text and "- same − pebble at" in text
 
 
+def test_tags_rename_a_labs_rules_so_two_settings_of_every_rule_compare(tmp_path):
+    """--tags '' T: the second lab's rules, pebble included, become RULE[T] and are all kept
+    (a lab with --one-shot or another --feed changes every rule); --pairs compares across."""
+    rows = _synthetic_rows()
+    write_report(rows, tmp_path / "a")
+    shifted = [dict(r, pearson=r["pearson"] + 0.25) for r in rows]
+    write_report(shifted, tmp_path / "b")
+    paths = [tmp_path / "a" / "results.csv", tmp_path / "b" / "results.csv"]
+    merged, differing = lab_report.merge_results(paths, ["", "t"])
+    assert differing == 0 and len(merged) == 2 * len(rows)
+    assert {r["rule"] for r in merged} == {"pebble", "better", "same",
+                                           "pebble[t]", "better[t]", "same[t]"}
+    with pytest.raises(ValueError, match="one per file"):
+        lab_report.merge_results(paths, ["t"])
+    lab_report.main([*map(str, paths), str(tmp_path / "both"), "--tags", "", "t",
+                     "--pairs", "pebble[t]:pebble"])
+    with (tmp_path / "both" / "pairs.csv").open() as f:
+        pearson = [r for r in csv.DictReader(f) if r["metric"] == "pearson"]
+    assert len(pearson) == len(BUDGETS)
+    assert all(float(r["diff"]) == pytest.approx(0.25) for r in pearson)
+
+
 def test_pairs_compare_any_two_rules_as_the_reference_comparison_does(tmp_path):
     """--pairs A:B: A − B paired by seed. better:pebble must equal the summary's comparison
     with pebble, number for number; a pair of rules that never ran together is an error."""

@@ -192,14 +192,22 @@ def read_results(path: Path) -> list[dict]:
     return rows
 
 
-def merge_results(paths) -> tuple[list[dict], int]:
+def merge_results(paths, tags=None) -> tuple[list[dict], int]:
     """The rows of several results.csv as one lab's (labs of one dataset and seeds, e.g. one
-    per world model, their rules tagged apart). A (task, rule, budget, seed) row found again
-    in a later file (the reference rule, run by every lab) is dropped: the first file's is
-    kept. -> (rows, how many of the dropped rows differed from the kept one in a metric)."""
+    per world model, their rules tagged apart). `tags`, one per path, renames every rule of
+    that lab RULE[TAG] ("" keeps the names): labs that differ in a setting every rule shares
+    (`--one-shot`, `--feed`), so that `--pairs pebble[one-shot]:pebble` compares them. A
+    (task, rule, budget, seed) row found again in a later file (the reference rule, run by
+    every lab) is dropped: the first file's is kept. -> (rows, how many of the dropped rows
+    differed from the kept one in a metric)."""
+    tags = [""] * len(paths) if tags is None else list(tags)
+    if len(tags) != len(paths):
+        raise ValueError(f"{len(tags)} tags for {len(paths)} results.csv: give one per file")
     kept, differing = {}, 0
-    for path in paths:
+    for path, tag in zip(paths, tags):
         for row in read_results(path):
+            if tag:
+                row["rule"] = f"{row['rule']}[{tag}]"
             key = (row["task"], row["rule"], row["budget"], row["seed"])
             if key not in kept:
                 kept[key] = row
@@ -401,13 +409,19 @@ def main(argv=None) -> Path:
     parser.add_argument("--pairs", nargs="+", default=(), metavar="A:B",
                         help="also compare rule A with rule B (A − B, paired by seed), e.g. "
                              "prior:positional prior:rvar")
+    parser.add_argument("--tags", nargs="+", default=None, metavar="TAG",
+                        help="one per RESULTS_CSV: that lab's rules are reported as RULE[TAG] "
+                             "('' keeps the names), e.g. '' one-shot for a lab and its "
+                             "--one-shot copy, compared by --pairs rvar[one-shot]:rvar")
     args = parser.parse_args(argv)
     pairs = [tuple(p.split(":")) for p in args.pairs]
     if any(len(p) != 2 for p in pairs):
         parser.error("write each pair as A:B")
     if len(args.paths) < 2:
         parser.error("give one or more results.csv and then the output folder")
-    rows, differing = merge_results(args.paths[:-1])
+    if args.tags is not None and len(args.tags) != len(args.paths) - 1:
+        parser.error(f"--tags: one per results.csv ({len(args.paths) - 1}), '' for none")
+    rows, differing = merge_results(args.paths[:-1], args.tags)
     if differing:
         print(f"{differing} rows found in several files differ in a metric: the first "
               "file's are kept", file=sys.stderr)
