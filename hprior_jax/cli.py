@@ -465,6 +465,10 @@ def _reward_lab(argv: list[str]) -> int:
                         help="TAG of --prior-set (default: the settings); merge the reports "
                              "of several labs with `python -m hprior_jax.experiments."
                              "lab_report A/results.csv B/results.csv OUT`")
+    parser.add_argument("--no-world-model-cache", action="store_true",
+                        help="train the seeds' world models even when a lab of the same "
+                             "dataset, seeds and world-model settings left them in "
+                             "$HPRIOR_LAB_CACHE/world_models (and do not keep them)")
     parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
     args = parser.parse_args(argv)
     from hprior_jax.lab.sweep import lab_config, run_lab
@@ -505,7 +509,11 @@ def _reward_lab(argv: list[str]) -> int:
                      args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam,
                      args.prior_set, args.tag)
     out = args.out or f"runs/reward_lab/{args.task}"
-    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given)
+    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given,
+                   reuse_world_models=not args.no_world_model_cache)
+    if info["world_model_cache"]:
+        cache = info["world_model_cache"]
+        print(f"world models {'loaded from' if cache['loaded'] else 'kept in'} {cache['path']}")
     print(f"{info['wall_seconds']} s, peak RSS {info['peak_rss_gib']} GiB; report in {out}")
     return 0
 

@@ -222,6 +222,38 @@ def data():
     return confounded()
 
 
+def test_a_labs_world_models_are_kept_and_the_next_lab_of_the_same_settings_loads_them(
+        data, tmp_path):
+    """The second lab gets the first one's world models and profiles, leaf for leaf, without
+    training; another world-model setting or seed list names another file; a file whose
+    leaves do not fit is trained over."""
+    import jax
+    import jax.numpy as jnp
+
+    from hprior_jax.lab import world_model_cache as cache
+
+    cfg = tiny(rules=("prior",), credits=("attention",), seeds=(0,))
+    path = cache.cache_path(cfg, data, tmp_path)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in cfg.seeds])
+    first = Lab(cfg, data, world_model_cache=path)
+    trained = first.seed_contexts(keys)
+    assert path.exists() and not first.world_model_loaded and first.seconds["world_model"] > 0
+    second = Lab(cfg, data, world_model_cache=path)
+    loaded = second.seed_contexts(keys)
+    assert second.world_model_loaded and "world_model" not in second.seconds
+    for a, b in zip(jax.tree.leaves(trained), jax.tree.leaves(loaded), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for other in (dataclasses.replace(cfg, wm_steps=cfg.wm_steps + 1),
+                  dataclasses.replace(cfg, seeds=(0, 1)),
+                  dataclasses.replace(cfg, world_model=dataclasses.replace(TINY_WM, dyn_lr=1e-3))):
+        assert cache.cache_path(other, data, tmp_path) != path
+    assert Lab(tiny(rules=("pebble",), credits=("none",)), data,
+               world_model_cache=path).world_model_cache is None  # no world model to keep
+    cache.save(path, {"other": np.zeros(3)})
+    assert cache.load(path, jax.eval_shape(jax.vmap(second.seed_context, (0, None)), keys,
+                                           second.train)) is None
+
+
 @pytest.fixture(scope="module")
 def oracle_vs_pebble(data):
     """A sigmoid reward head: the prior's target α·R̂ takes the sign of R̂, which the

@@ -44,6 +44,7 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from functools import partial
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -52,6 +53,7 @@ import optax
 from flax import struct
 
 from hprior_jax.buffers import preferences
+from hprior_jax.lab import world_model_cache
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.bisim import BisimTransitions, bisim_term
@@ -205,7 +207,10 @@ class SeedContext:
 
 
 class Lab:
-    def __init__(self, cfg: LabConfig, data: Dataset, given: GivenLabels | None = None):
+    def __init__(self, cfg: LabConfig, data: Dataset, given: GivenLabels | None = None,
+                 world_model_cache: Path | None = None):
+        """`world_model_cache`: an .npz (`world_model_cache.cache_path`) the seeds' world
+        models are loaded from when it holds them, else trained and written to."""
         if given is not None and not (cfg.one_shot and cfg.budgets == (len(given),)):
             raise ValueError(f"given labels train once on all {len(given)}: one_shot=True "
                              f"and budgets=({len(given)},)")
@@ -244,6 +249,8 @@ class Lab:
         self.compile_seconds: dict[str, float] = {}
         self.adam_steps = 0  # reward-ensemble minibatch steps run, of any minibatch size
         self.diagnostics: list[dict] = []  # per seed, when a rule needs the world model
+        self.world_model_cache = world_model_cache if cfg.needs_world_model else None
+        self.world_model_loaded = False  # True: from world_model_cache, not trained here
 
     # -- per seed -----------------------------------------------------------------------
     def seed_context(self, key: jax.Array, train: Episodes) -> SeedContext:
@@ -268,6 +275,22 @@ class Lab:
         alpha = segment_credit(state.params, seg_obs, seg_act, cfg.world_model,
                                query=cfg.attention_query)
         return SeedContext(wm_params=state.params, profile=alpha.mean(0))
+
+    def seed_contexts(self, keys: jax.Array) -> SeedContext:
+        """Every seed's context [S, ...]: from `world_model_cache` when it holds it, else
+        trained (and written there)."""
+        fn = jax.vmap(self.seed_context, (0, None))
+        path = self.world_model_cache
+        if path is not None:
+            ctx = world_model_cache.load(path, jax.eval_shape(fn, keys, self.train))
+            if ctx is not None:
+                self.world_model_loaded = True
+                return ctx
+        ctx = self._timed("world_model", self._compiled("world_model", fn, keys, self.train),
+                          keys, self.train)
+        if path is not None:
+            world_model_cache.save(path, ctx)
+        return ctx
 
     def init_cell(self, key: jax.Array, capacity: int) -> Cell:
         params = init_reward_ensemble(key, self.obs_size, self.act_size, self.cfg.reward)
@@ -404,9 +427,7 @@ class Lab:
         `on_budget(rows)`, if given, gets each budget's rows as soon as it is reached."""
         cfg = self.cfg
         keys = jnp.stack([jax.random.PRNGKey(s) for s in cfg.seeds])
-        seed_context = self._compiled("world_model", jax.vmap(self.seed_context, (0, None)),
-                                      keys, self.train)
-        ctx = self._timed("world_model", seed_context, keys, self.train)
+        ctx = self.seed_contexts(keys)
         if cfg.needs_world_model:
             self.diagnostics = self._world_model_diagnostics(ctx)
             progress("world model, mean over seeds: " + ", ".join(

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hprior_jax.lab import world_model_cache
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM,
                                   WORLD_MODEL_CREDITS, GivenLabels, Lab, LabConfig)
@@ -164,17 +165,22 @@ def score(rows: list[dict], data: Dataset) -> list[dict]:
 
 
 def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
-            given: GivenLabels | None = None) -> dict:
+            given: GivenLabels | None = None, reuse_world_models: bool = True) -> dict:
     """Runs the sweep; writes OUT/run_info.json (time, memory, settings) and the report
     (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs). The report is
     rewritten as each budget is reached, so a stopped lab keeps the budgets it reached.
-    `given`: labels given beforehand (a person's) instead of the teacher's."""
+    `given`: labels given beforehand (a person's) instead of the teacher's.
+    `reuse_world_models`: the seeds' world models come from the lab cache when a lab of the
+    same dataset, seeds and world-model settings trained them (`world_model_cache`), and
+    are kept there when trained here."""
     from hprior_jax.experiments.lab_report import write_report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    lab = Lab(cfg, data, given)
+    cached = world_model_cache.cache_path(cfg, data) if (
+        reuse_world_models and cfg.needs_world_model) else None
+    lab = Lab(cfg, data, given, world_model_cache=cached)
     rows = []
     title = f"Reward-learning lab: {data.task}"
 
@@ -189,6 +195,8 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
         "task": data.task, "dataset": data.info, "wall_seconds": round(wall, 1),
         "seconds": {k: round(v, 1) for k, v in lab.seconds.items()},
         "compile_seconds": {k: round(v, 1) for k, v in lab.compile_seconds.items()},
+        "world_model_cache": None if cached is None else dict(
+            path=str(cached), loaded=lab.world_model_loaded),
         "cells": cells, "adam_steps": lab.adam_steps,
         "ms_per_adam_step_per_cell": round(1000 * lab.seconds.get("rounds", 0.0)
                                            / max(lab.adam_steps * cells, 1), 2),
