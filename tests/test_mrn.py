@@ -7,7 +7,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import pytest
 
 from hprior_jax import presets
 from hprior_jax.agents.sac import SAC, Batch, SACConfig

@@ -47,19 +47,26 @@ def test_world_model_schedule(tmp_path):
 def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkeypatch):
     """--prior.exclude-own-step: every stored pair's α is 0 on its last step and still sums
     to 1; --prior.clip-targets: the round's prior term is built to clip (prior_term's clip
-    itself is tested in test_prior_loss)."""
+    itself is tested in test_prior_loss); --prior.wm-normalize-obs: the world model's
+    training, its diagnostics and the credit all read standardised observations (what a
+    scaler does: test_world_model)."""
     import hprior_jax.methods.prior as prior_method
 
-    clips = []
+    clips, scalers = [], []
     real_term = prior_method.prior_term
     monkeypatch.setattr(prior_method, "prior_term",
                         lambda *a, clip=False: clips.append(clip) or real_term(*a, clip=clip))
+    real_scaled = prior_method.wm.scaled
+    monkeypatch.setattr(prior_method.wm, "scaled",
+                        lambda scaler, obs: scalers.append(scaler) or real_scaled(scaler, obs))
     cfg = _cfg(tmp_path, "ablated")
-    cfg = dataclasses.replace(cfg, prior=dataclasses.replace(cfg.prior, exclude_own_step=True,
-                                                             clip_targets=True))
+    cfg = dataclasses.replace(cfg, prior=dataclasses.replace(
+        cfg.prior, exclude_own_step=True, clip_targets=True, wm_normalize_obs=True))
     rs = _run(cfg)
     count = int(rs.method.prefs.count[0])
     assert count > 0 and clips and all(clips)
+    # traced: pre-training, a later update, the diagnostics of each, the credit of a round
+    assert len(scalers) >= 5 and all(isinstance(s, prior_method.wm.ObsScaler) for s in scalers)
     for alpha in (rs.method.ext.credit.alpha1[0, :count], rs.method.ext.credit.alpha2[0, :count]):
         np.testing.assert_array_equal(np.asarray(alpha[:, -1]), 0.0)
         np.testing.assert_allclose(np.asarray(alpha).sum(-1), 1.0, rtol=1e-5)

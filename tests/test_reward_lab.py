@@ -120,6 +120,8 @@ def test_prior_settings_change_the_world_model_and_tag_the_rules_that_read_it(da
     assert tagged.rules[1] == "prior[deep]"
     assert lab_config(toy, "smoke", names, prior_settings=["wm_lr=0.001"]
                       ).world_model.num_layers == base.world_model.num_layers
+    assert not base.wm_normalize_obs and lab_config(
+        toy, "smoke", names, prior_settings=["wm_normalize_obs=true"]).wm_normalize_obs
     assert base.wm_order == "joint" and lab_config(
         toy, "smoke", names, prior_settings=["wm_order=observation_first"]
     ).wm_order == "observation_first"
@@ -232,7 +234,8 @@ def test_a_labs_world_models_are_kept_and_the_next_lab_of_the_same_settings_load
 
     from hprior_jax.lab import world_model_cache as cache
 
-    cfg = tiny(rules=("prior",), credits=("attention",), seeds=(0,))
+    # with standardised world-model inputs, so the kept context holds the scaler too
+    cfg = tiny(rules=("prior",), credits=("attention",), seeds=(0,), wm_normalize_obs=True)
     path = cache.cache_path(cfg, data, tmp_path)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in cfg.seeds])
     first = Lab(cfg, data, world_model_cache=path)
@@ -243,7 +246,10 @@ def test_a_labs_world_models_are_kept_and_the_next_lab_of_the_same_settings_load
     assert second.world_model_loaded and "world_model" not in second.seconds
     for a, b in zip(jax.tree.leaves(trained), jax.tree.leaves(loaded), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_allclose(loaded.obs_scaler.mean[0],
+                               data.train_obs.reshape(-1, 4).mean(0), atol=1e-5)
     for other in (dataclasses.replace(cfg, wm_steps=cfg.wm_steps + 1),
+                  dataclasses.replace(cfg, wm_normalize_obs=False),
                   dataclasses.replace(cfg, seeds=(0, 1)),
                   dataclasses.replace(cfg, world_model=dataclasses.replace(TINY_WM, dyn_lr=1e-3))):
         assert cache.cache_path(other, data, tmp_path) != path

@@ -217,6 +217,36 @@ def test_pretrain_joint_is_both_at_once_and_observation_first_is_the_two_in_turn
         pretrain(st0, key, order="dynamics_first")
 
 
+def test_a_scaler_standardises_the_valid_rows_and_training_with_it_is_training_on_them():
+    """fit_obs_scaler: numpy's mean and std per dimension over rows 0..size-1 only, a constant
+    dimension's std floored (it maps to 0); train(obs_scaler=S) on the raw buffer = train on
+    the buffer S already standardised (--prior.wm-normalize-obs)."""
+    size = 30
+    buf = np.asarray(OBS_BUF).copy()
+    buf[:, 2] = 3.0  # constant
+    buf[size:] = 1e6  # past the valid prefix: never read
+    scaler = wm.fit_obs_scaler(jnp.asarray(buf), jnp.int32(size))
+    np.testing.assert_allclose(scaler.mean, buf[:size].mean(0), rtol=1e-5)
+    np.testing.assert_allclose(scaler.std, np.maximum(buf[:size].std(0), wm.MIN_OBS_STD),
+                               rtol=1e-5)
+    assert scaler.std[2] == np.float32(wm.MIN_OBS_STD)
+    np.testing.assert_allclose(wm.scaled(scaler, jnp.asarray(buf[:size]))[:, 2], 0.0, atol=1e-4)
+    assert wm.scaled(None, OBS_BUF) is OBS_BUF
+    st0, key = _init(jax.random.key(0), CFG), jax.random.key(5)
+    with_scaler, _ = _train(st0, key, jnp.asarray(buf), ACT_BUF, jnp.int32(size),
+                            observation_model=True, dynamics_model=True, obs_scaler=scaler)
+    prescaled, _ = _train(st0, key, scaler(jnp.asarray(buf)), ACT_BUF, jnp.int32(size),
+                          observation_model=True, dynamics_model=True)
+    # equal up to float rounding that 40 Adam steps carry to ~5e-6 (raw inputs: ~1e-1 apart)
+    for a, b in zip(jax.tree.leaves(with_scaler.params), jax.tree.leaves(prescaled.params)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=5e-5)
+    raw, _ = _train(st0, key, jnp.asarray(buf), ACT_BUF, jnp.int32(size),
+                    observation_model=True, dynamics_model=True)
+    gap = max(float(np.abs(a - b).max()) for a, b in zip(jax.tree.leaves(raw.params.obs),
+                                                          jax.tree.leaves(with_scaler.params.obs)))
+    assert gap > 1e-2, gap
+
+
 def test_dynamics_gradient_leaves_the_observation_model_alone():
     """The dynamics loss has no gradient w.r.t. the observation model (z enters under
     stop_gradient, the decoder is frozen), but does w.r.t. the dynamics params."""

@@ -91,12 +91,13 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
                          f"choose 0..{count - 1}")
     fn = jax.jit(lambda p, o, a: final_step_attention(p, o, a, engine.method.ext.wm_cfg,
                                                       cfg.prior.attention_query))
+    scaler = engine.method.ext.obs_scaler(state.replay)  # as the world model read them
     out = Path(out) if out else run_dir / "attention"
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for side, (obs, act) in enumerate(((prefs.obs1, prefs.act1), (prefs.obs2, prefs.act2)),
                                       start=1):
-        rows, alpha = fn(wm_params, obs[pair], act[pair])
+        rows, alpha = fn(wm_params, wm.scaled(scaler, obs[pair]), act[pair])
         label = int(prefs.labels[pair])
         title = (f"{cfg.task} seed {seed} step {step}: pair {pair}, segment {side} "
                  f"(teacher label {label})")

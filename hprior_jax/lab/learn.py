@@ -104,6 +104,7 @@ class LabConfig:
     wm_pretrain_steps: int = 300
     wm_steps: int = 600  # dynamics-only steps after the pre-training
     wm_order: str = "joint"  # the pre-training's order (wm.pretrain)
+    wm_normalize_obs: bool = False  # standardised world-model inputs (an ablation)
     attention_query: str = "action"
     profile_segments: int = 256  # training segments the positional profile averages
 
@@ -200,10 +201,12 @@ class Episodes:
 
 @struct.dataclass
 class SeedContext:
-    """What a seed's rules share: the world model and its mean α per position."""
+    """What a seed's rules share: the world model, its mean α per position and the
+    standardisation of its observations (None: raw, the paper's)."""
 
     wm_params: wm.WorldModelParams | None
     profile: jax.Array  # [T]
+    obs_scaler: wm.ObsScaler | None = None
 
 
 class Lab:
@@ -260,9 +263,10 @@ class Lab:
         k_init, k_pre, k_dyn, k_seg = jax.random.split(jax.random.fold_in(key, wm.RANDOM_STREAM), 4)
         obs, act = train.obs, train.act
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
-        data = dict(obs_buf=flat(obs), act_buf=flat(act),
-                    size=jnp.int32(obs.shape[0] * obs.shape[1]), cfg=cfg.world_model,
-                    episode_len=obs.shape[1])
+        size = jnp.int32(obs.shape[0] * obs.shape[1])
+        scaler = wm.fit_obs_scaler(flat(obs), size) if cfg.wm_normalize_obs else None
+        data = dict(obs_buf=flat(obs), act_buf=flat(act), size=size, cfg=cfg.world_model,
+                    episode_len=obs.shape[1], obs_scaler=scaler)
         state = wm.init(k_init, cfg.world_model)
         state, _ = wm.pretrain(state, k_pre, num_steps=cfg.wm_pretrain_steps,
                                order=cfg.wm_order, **data)
@@ -270,11 +274,11 @@ class Lab:
             state, _ = wm.train(state, k_dyn, num_steps=cfg.wm_steps, observation_model=False,
                                 dynamics_model=True, **data)
         seg_obs, seg_act = wm.sample_segments(
-            k_seg, flat(obs), flat(act), jnp.int32(obs.shape[0] * obs.shape[1]),
-            episode_len=obs.shape[1], batch_size=cfg.profile_segments, segment_len=self.T)
-        alpha = segment_credit(state.params, seg_obs, seg_act, cfg.world_model,
-                               query=cfg.attention_query)
-        return SeedContext(wm_params=state.params, profile=alpha.mean(0))
+            k_seg, flat(obs), flat(act), size, episode_len=obs.shape[1],
+            batch_size=cfg.profile_segments, segment_len=self.T)
+        alpha = segment_credit(state.params, wm.scaled(scaler, seg_obs), seg_act,
+                               cfg.world_model, query=cfg.attention_query)
+        return SeedContext(wm_params=state.params, profile=alpha.mean(0), obs_scaler=scaler)
 
     def seed_contexts(self, keys: jax.Array) -> SeedContext:
         """Every seed's context [S, ...]: from `world_model_cache` when it holds it, else
@@ -305,7 +309,8 @@ class Lab:
         if ctx.wm_params is None:
             attention = no_own_step = uniform
         else:
-            attn = segment_attention(ctx.wm_params, obs, act, self.cfg.world_model)
+            attn = segment_attention(ctx.wm_params, wm.scaled(ctx.obs_scaler, obs), act,
+                                     self.cfg.world_model)
             attention, no_own_step = (
                 jax.vmap(partial(credit_from_attention, num_steps=self.T,
                                  query=self.cfg.attention_query, own_step=own))(attn)
@@ -413,9 +418,12 @@ class Lab:
         """prior.diagnostics of each seed's world model on fixed held-out segments (the same
         for every seed; they read the held-out true rewards, as the metrics do). -> one dict
         per seed."""
-        fn = jax.vmap(partial(world_model_diagnostics, cfg=self.cfg.world_model,
-                              query=self.cfg.attention_query), (0, None, None, None, None))
-        args = (ctx.wm_params, *held_out_segments(self.data, self.T, num_segments))
+        diagnose = partial(world_model_diagnostics, cfg=self.cfg.world_model,
+                           query=self.cfg.attention_query)
+        fn = jax.vmap(lambda params, scaler, obs, *rest: diagnose(
+            params, wm.scaled(scaler, obs), *rest), (0, 0, None, None, None, None))
+        args = (ctx.wm_params, ctx.obs_scaler,
+                *held_out_segments(self.data, self.T, num_segments))
         out = jax.device_get(self._timed("diagnostics", self._compiled("diagnostics", fn, *args),
                                          *args))
         return [dict(seed=seed, **{k: float(v[i]) for k, v in out.items()})

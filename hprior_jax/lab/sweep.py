@@ -147,7 +147,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         world_model=prior.world_model(data.train_obs.shape[-1], data.train_act.shape[-1],
                                       data.segment_len),
         wm_pretrain_steps=prior.wm_pretrain_steps, wm_steps=updates * prior.wm_update_steps,
-        wm_order=prior.wm_order,
+        wm_order=prior.wm_order, wm_normalize_obs=prior.wm_normalize_obs,
         attention_query=prior.attention_query)
 
 

@@ -5,9 +5,10 @@ half of a 10-seed lab's time.
 
 A world model is a deterministic function of what the key names: the dataset's training
 episodes, the seeds, the world-model config, its training schedule (pre-training steps,
-dynamics steps, order), the credit settings of the positional profile, the code that trains
-and reads it (its source files' bytes) and the jax version. Anything else that changed it
-would be a bug in this list; `--no-world-model-cache` trains afresh.
+dynamics steps, order), whether its observations are standardised, the credit settings of
+the positional profile, the code that trains and reads it (its source files' bytes) and the
+jax version. Anything else that changed it would be a bug in this list;
+`--no-world-model-cache` trains afresh.
 """
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def cache_key(cfg, data: Dataset) -> str:
     settings = dict(
         task=data.task, segment_len=data.segment_len, seeds=list(cfg.seeds),
         world_model=dataclasses.asdict(cfg.world_model), wm_pretrain_steps=cfg.wm_pretrain_steps,
-        wm_steps=cfg.wm_steps, wm_order=cfg.wm_order, attention_query=cfg.attention_query,
+        wm_steps=cfg.wm_steps, wm_order=cfg.wm_order, wm_normalize_obs=cfg.wm_normalize_obs,
+        attention_query=cfg.attention_query,
         profile_segments=cfg.profile_segments, jax=jax.__version__, code=_code_digest())
     h.update(json.dumps(settings, sort_keys=True, default=str).encode())
     return h.hexdigest()[:20]

@@ -69,6 +69,10 @@ class PriorConfig:
     clip_targets: bool = False
     """Ablation (not in the paper): the targets α_t·R̂ clipped to [-1, 1], the tanh reward's
     range; unclipped, 1-12% of them were out of reach in the reduced cheetah runs."""
+    wm_normalize_obs: bool = False
+    """Ablation (not in the paper, nor TWM, which feed raw observations): the world model's
+    observations standardised per dimension by the replay buffer's mean and std, recomputed
+    from the buffer whenever the world model trains or gives credit."""
     # world model sizes (TWM defaults; appendix Table 5 sets sequence = memory = segment length)
     wm_batch: int = 100
     wm_latent: int = 32
@@ -139,6 +143,13 @@ class WorldModelPrior(Extension):
         later = range((first // j + 1) * j, self.cfg.steps, j) if self.prior_cfg.wm_update_steps else []
         return [first, *later]
 
+    def obs_scaler(self, replay) -> wm.ObsScaler | None:
+        """The standardisation of the world model's observations (`wm_normalize_obs`), from
+        the replay buffer as it is now; None: raw observations (the paper's)."""
+        if not self.prior_cfg.wm_normalize_obs:
+            return None
+        return wm.fit_obs_scaler(replay.obs, replay.size)
+
     # -- per-seed pure functions -----------------------------------------------------------
     # World-model randomness is folded out of the keys PEBBLE uses, never split from them, so
     # every PEBBLE draw is unchanged: with λ = 0 a PRIOR run trains exactly PEBBLE's agent.
@@ -154,7 +165,8 @@ class WorldModelPrior(Extension):
         p, ext = self.prior_cfg, rs.method.ext
         key = jax.random.fold_in(rs.key, wm.RANDOM_STREAM)
         data = dict(obs_buf=rs.replay.obs, act_buf=rs.replay.action, size=rs.replay.size,
-                    cfg=self.wm_cfg, episode_len=self.kit.env.episode_length)
+                    cfg=self.wm_cfg, episode_len=self.kit.env.episode_length,
+                    obs_scaler=self.obs_scaler(rs.replay))
         if pretrain:
             state, metrics = wm.pretrain(ext.wm, key, num_steps=p.wm_pretrain_steps,
                                          order=p.wm_order, **data)
@@ -176,8 +188,9 @@ class WorldModelPrior(Extension):
                               batch_size=DIAGNOSTIC_SEGMENTS, segment_len=t)
         perm = jax.vmap(lambda k: jax.random.permutation(k, t))(
             jax.random.split(k_perm, DIAGNOSTIC_SEGMENTS))
-        diag = world_model_diagnostics(params, buf.obs[idx], buf.action[idx],
-                                       buf.true_reward[idx], perm, self.wm_cfg,
+        # with wm_normalize_obs the errors are in standardised units, as the model trains
+        diag = world_model_diagnostics(params, wm.scaled(self.obs_scaler(buf), buf.obs[idx]),
+                                       buf.action[idx], buf.true_reward[idx], perm, self.wm_cfg,
                                        query=self.prior_cfg.attention_query)
         return {f"prior/{k}": v for k, v in diag.items()}
 
@@ -185,7 +198,8 @@ class WorldModelPrior(Extension):
         """α for every stored pair from the current world model, then the prior term."""
         p = self.prior_cfg
         credit = pair_credit(ms.ext.wm.params, ms.prefs, self.wm_cfg, credit=ms.ext.credit,
-                             query=p.attention_query, own_step=not p.exclude_own_step)
+                             query=p.attention_query, own_step=not p.exclude_own_step,
+                             obs_scaler=self.obs_scaler(rs.replay))
         ms = ms.replace(ext=ms.ext.replace(credit=credit))
         return (prior_term(ms.ext.lam, credit, self.variant, clip=p.clip_targets),), ms
 

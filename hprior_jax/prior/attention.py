@@ -129,8 +129,9 @@ def autoregressive_credit(params: wm.WorldModelParams, obs: jax.Array, act: jax.
 
 def pair_credit(params: wm.WorldModelParams, store: PreferenceStore, cfg: wm.WorldModelConfig, *,
                 chunk: int = 50, query: str = "action", credit: PairCredit | None = None,
-                own_step: bool = True) -> PairCredit:
-    """α for both segments of every stored pair (rows 0..count-1), `chunk` pairs per forward.
+                own_step: bool = True, obs_scaler: wm.ObsScaler | None = None) -> PairCredit:
+    """α for both segments of every stored pair (rows 0..count-1), `chunk` pairs per forward
+    (their observations standardised by `obs_scaler` when given, as the world model trained).
 
     Cost scales with `count`, not capacity. Rows >= count keep their old value (`credit`, or the
     uniform 1/T when None). α is read only by the reward update, so computing it once per
@@ -145,7 +146,7 @@ def pair_credit(params: wm.WorldModelParams, store: PreferenceStore, cfg: wm.Wor
     def body(i, c: PairCredit):
         start = jnp.minimum(i * chunk, cap - chunk)  # the last chunk may overlap the previous one
         take = lambda x: jax.lax.dynamic_slice_in_dim(x, start, chunk, axis=0)
-        obs = jnp.concatenate([take(store.obs1), take(store.obs2)], axis=0)
+        obs = wm.scaled(obs_scaler, jnp.concatenate([take(store.obs1), take(store.obs2)], axis=0))
         act = jnp.concatenate([take(store.act1), take(store.act2)], axis=0)
         alpha = segment_credit(params, obs, act, cfg, query=query, own_step=own_step)
         real = (start + jnp.arange(chunk) < store.count)[:, None]

@@ -293,7 +293,7 @@ PRETRAIN_ORDERS = get_args(PretrainOrder)
 
 def pretrain(state: WorldModelState, key: jax.Array, obs_buf: jax.Array, act_buf: jax.Array,
              size: jax.Array, *, cfg: WorldModelConfig, episode_len: int, num_steps: int,
-             order: PretrainOrder = "joint"):
+             order: PretrainOrder = "joint", obs_scaler: ObsScaler | None = None):
     """The pre-training at the first feedback round. "joint": `num_steps` steps of both
     models together (appendix C.3 trains both then). "observation_first" (TWM's order, an
     ablation): the observation model alone for `num_steps`, then the dynamics model alone for
@@ -301,13 +301,44 @@ def pretrain(state: WorldModelState, key: jax.Array, obs_buf: jax.Array, act_buf
     if order not in PRETRAIN_ORDERS:
         raise ValueError(f"order={order!r}; choose one of {PRETRAIN_ORDERS}")
     run = partial(train, obs_buf=obs_buf, act_buf=act_buf, size=size, cfg=cfg,
-                  episode_len=episode_len, num_steps=num_steps)
+                  episode_len=episode_len, num_steps=num_steps, obs_scaler=obs_scaler)
     if order == "joint":
         return run(state, key, observation_model=True, dynamics_model=True)
     k_obs, k_dyn = jax.random.split(key)
     state, m_obs = run(state, k_obs, observation_model=True, dynamics_model=False)
     state, m_dyn = run(state, k_dyn, observation_model=False, dynamics_model=True)
     return state, {**m_obs, **m_dyn}
+
+
+@flax.struct.dataclass
+class ObsScaler:
+    """Per-dimension standardisation of the world model's observations, (obs - mean) / std:
+    an ablation (`--prior.wm-normalize-obs`; TWM and the paper feed raw observations, whose
+    velocities are of order 10 on cheetah and dominate the next-state loss)."""
+
+    mean: jax.Array  # [ds]
+    std: jax.Array  # [ds]
+
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        return (obs - self.mean) / self.std
+
+
+MIN_OBS_STD = 1e-2  # a constant dimension (MetaWorld's zero padding) maps to 0, not to inf
+
+
+def fit_obs_scaler(obs_buf: jax.Array, size: jax.Array) -> ObsScaler:
+    """Mean and std of every dimension over the valid rows 0..size-1 of obs_buf[C, ds]
+    (std floored at MIN_OBS_STD)."""
+    valid = (jnp.arange(obs_buf.shape[0]) < size)[:, None]
+    n = jnp.maximum(size, 1).astype(jnp.float32)
+    mean = jnp.where(valid, obs_buf, 0.0).sum(0) / n
+    var = jnp.where(valid, (obs_buf - mean) ** 2, 0.0).sum(0) / n
+    return ObsScaler(mean=mean, std=jnp.maximum(jnp.sqrt(var), MIN_OBS_STD))
+
+
+def scaled(scaler: ObsScaler | None, obs: jax.Array) -> jax.Array:
+    """`obs` as the world model reads it: standardised by `scaler`, or raw when None."""
+    return obs if scaler is None else scaler(obs)
 
 
 def sample_segments(key: jax.Array, obs: jax.Array, act: jax.Array, size: jax.Array, *,
@@ -341,8 +372,9 @@ def segment_rows(key: jax.Array, size: jax.Array, *, episode_len: int, batch_siz
 
 def train(state: WorldModelState, key: jax.Array, obs_buf: jax.Array, act_buf: jax.Array,
           size: jax.Array, *, cfg: WorldModelConfig, episode_len: int, num_steps: int,
-          observation_model: bool, dynamics_model: bool):
-    """`num_steps` world-model steps on fresh segments from the replay buffer (lax.scan).
+          observation_model: bool, dynamics_model: bool, obs_scaler: ObsScaler | None = None):
+    """`num_steps` world-model steps on fresh segments from the replay buffer (lax.scan),
+    their observations standardised by `obs_scaler` when given.
 
     Static flags pick the parts (appendix C.3: both after pre-training, then dynamics only every
     j steps). Returns (state, metrics averaged over the steps).
@@ -354,6 +386,7 @@ def train(state: WorldModelState, key: jax.Array, obs_buf: jax.Array, act_buf: j
         k_seg, k_drop = jax.random.split(k)
         obs, act = sample_segments(k_seg, obs_buf, act_buf, size, episode_len=episode_len,
                                    batch_size=cfg.batch_size, segment_len=cfg.segment_len)
+        obs = scaled(obs_scaler, obs)
         m = {}
         if observation_model:
             st, mo = update_observation_model(st, obs, cfg)
