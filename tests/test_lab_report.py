@@ -188,6 +188,10 @@ def test_tags_rename_a_labs_rules_so_two_settings_of_every_rule_compare(tmp_path
         pearson = [r for r in csv.DictReader(f) if r["metric"] == "pearson"]
     assert len(pearson) == len(BUDGETS)
     assert all(float(r["diff"]) == pytest.approx(0.25) for r in pearson)
+    lab_report.main([*map(str, paths), str(tmp_path / "some"), "--tags", "", "t",
+                     "--only", "pebble", "pebble[t]"])
+    assert {r["rule"] for r in lab_report.read_results(tmp_path / "some" / "results.csv")} == {
+        "pebble", "pebble[t]"}
 
 
 def test_pairs_compare_any_two_rules_as_the_reference_comparison_does(tmp_path):

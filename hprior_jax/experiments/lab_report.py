@@ -413,6 +413,9 @@ def main(argv=None) -> Path:
                         help="one per RESULTS_CSV: that lab's rules are reported as RULE[TAG] "
                              "('' keeps the names), e.g. '' one-shot for a lab and its "
                              "--one-shot copy, compared by --pairs rvar[one-shot]:rvar")
+    parser.add_argument("--only", nargs="+", default=None, metavar="RULE",
+                        help="report only these rules (names after --tags), e.g. pebble rvar "
+                             "pebble[one-shot] rvar[one-shot]")
     args = parser.parse_args(argv)
     pairs = [tuple(p.split(":")) for p in args.pairs]
     if any(len(p) != 2 for p in pairs):
@@ -422,6 +425,11 @@ def main(argv=None) -> Path:
     if args.tags is not None and len(args.tags) != len(args.paths) - 1:
         parser.error(f"--tags: one per results.csv ({len(args.paths) - 1}), '' for none")
     rows, differing = merge_results(args.paths[:-1], args.tags)
+    if args.only:
+        missing = set(args.only) - {row["rule"] for row in rows}
+        if missing:
+            parser.error(f"--only: no rows of {sorted(missing)}")
+        rows = [row for row in rows if row["rule"] in args.only]
     if differing:
         print(f"{differing} rows found in several files differ in a metric: the first "
               "file's are kept", file=sys.stderr)
