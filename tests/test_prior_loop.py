@@ -49,7 +49,7 @@ def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkey
     to 1; --prior.clip-targets: the round's prior term is built to clip (prior_term's clip
     itself is tested in test_prior_loss); --prior.wm-normalize-obs: the world model's
     training, its diagnostics and the credit all read standardised observations (what a
-    scaler does: test_world_model)."""
+    scaler does: test_world_model); --prior.unlabelled-segments: a second prior term."""
     import hprior_jax.methods.prior as prior_method
 
     clips, scalers = [], []
@@ -61,12 +61,17 @@ def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkey
                         lambda scaler, obs: scalers.append(scaler) or real_scaled(scaler, obs))
     cfg = _cfg(tmp_path, "ablated")
     cfg = dataclasses.replace(cfg, prior=dataclasses.replace(
-        cfg.prior, exclude_own_step=True, clip_targets=True, wm_normalize_obs=True))
+        cfg.prior, exclude_own_step=True, clip_targets=True, wm_normalize_obs=True,
+        unlabelled_segments=8))
     rs = _run(cfg)
     count = int(rs.method.prefs.count[0])
     assert count > 0 and clips and all(clips)
     # traced: pre-training, a later update, the diagnostics of each, the credit of a round
-    assert len(scalers) >= 5 and all(isinstance(s, prior_method.wm.ObsScaler) for s in scalers)
+    # and of its unlabelled segments
+    assert len(scalers) >= 6 and all(isinstance(s, prior_method.wm.ObsScaler) for s in scalers)
+    # --prior.unlabelled-segments: the round's update fits the prior on them too
+    rounds = [m for m in _records(tmp_path / "ablated") if "prior/unlabelled_loss" in m]
+    assert rounds and all(m["prior/unlabelled_loss"] > 0 for m in rounds)
     for alpha in (rs.method.ext.credit.alpha1[0, :count], rs.method.ext.credit.alpha2[0, :count]):
         np.testing.assert_array_equal(np.asarray(alpha[:, -1]), 0.0)
         np.testing.assert_allclose(np.asarray(alpha).sum(-1), 1.0, rtol=1e-5)

@@ -65,6 +65,37 @@ def test_prior_loss_matches_numpy_and_ignores_masked_segments():
                                total, rtol=1e-6)
 
 
+def test_unlabelled_prior_is_the_prior_on_each_members_pool_segments():
+    """rows_of_pool: store row r holds pool segment r mod N. The term's loss on per-member
+    rows (as train_reward gathers them) is Σ_k of the NumPy prior loss on member k's rewards
+    of its own rows' segments, masked minibatch rows left out (--prior.unlabelled-segments)."""
+    from hprior_jax.prior import unlabelled as U
+
+    rng = np.random.default_rng(3)
+    n, cap, b = 5, 12, 4
+    obs = rng.normal(size=(n, T, DS)).astype(np.float32)
+    act = rng.normal(size=(n, T, DA)).astype(np.float32)
+    alpha = _simplex(rng, n, T)
+    pool = U.rows_of_pool(jnp.asarray(obs), jnp.asarray(act), jnp.asarray(alpha), cap)
+    np.testing.assert_array_equal(pool.obs, obs[np.arange(cap) % n])
+    np.testing.assert_array_equal(pool.alpha, alpha[np.arange(cap) % n])
+    params = re.init_reward_ensemble(jax.random.PRNGKey(0), DS, DA, SMALL)
+    idx = rng.integers(0, cap, size=(K, b))
+    rows = jax.tree.map(lambda x: x[idx], pool)
+    mask = np.array([True, True, False, True])
+    term = U.unlabelled_prior_term(2.0, pool, reward_cfg=SMALL)
+    assert term.name == "prior/unlabelled_loss" and term.weight == 2.0
+    got = term.loss(None, None, rows, jnp.asarray(mask), params)
+    want = 0.0
+    for k in range(K):
+        seg = idx[k] % n
+        r_k = np.asarray(re.member_rewards(params, jnp.asarray(obs[seg]), jnp.asarray(act[seg]),
+                                           SMALL))[k]  # [b, T]
+        err = ((r_k - alpha[seg] * r_k.sum(-1, keepdims=True)) ** 2).mean(-1)
+        want += err[mask].mean()
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
 def test_pair_prior_loss_is_prior_loss_on_both_segments():
     rng = np.random.default_rng(2)
     r1, r2 = (rng.normal(size=(K, 4, T)).astype(np.float32) for _ in range(2))

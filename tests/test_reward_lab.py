@@ -78,20 +78,27 @@ def test_rules_are_the_registered_reward_learners_and_the_controls():
     learners = [n for n in registry.names() if registry.get(n).lab_credit is not None]
     assert ALL == learners + ["positional", "oracle"]
     assert registry.REFERENCE not in ALL  # SAC learns no reward
-    assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped"]  # asked for by name
+    assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped",
+                                   "prior_unlabelled"]  # asked for by name
     assert rules()["bisim"] == "bisimulation"
 
 
 def test_ablations_and_lambdas_are_rules_of_one_lab(data):
     cfg = lab_config(dataclasses.replace(data, task="toy_point"), "smoke",
-                     ["pebble", "prior@0", "prior", "prior_clipped", "prior_no_own_step@25"])
+                     ["pebble", "prior@0", "prior", "prior_clipped", "prior_no_own_step@25",
+                      "prior_unlabelled"])
     assert cfg.credits == ("none", "attention", "attention", "attention",
-                           "attention_no_own_step")
-    assert cfg.clips == (False, False, False, True, False)
-    assert cfg.rule_lams == (None, 0.0, None, None, 25.0)
+                           "attention_no_own_step", "attention")
+    assert cfg.clips == (False, False, False, True, False, False)
+    assert cfg.unlabelled == (False,) * 5 + (True,) and cfg.needs_unlabelled
+    assert cfg.unlabelled_segments == 64  # the lab's N, as --prior.unlabelled-segments is 0
+    assert cfg.rule_lams == (None, 0.0, None, None, 25.0, None)
     lab = Lab(cfg, dataclasses.replace(data, task="toy_point"))
-    np.testing.assert_array_equal(lab.rule_args.lam, [0, 0, cfg.lam, cfg.lam, 25])
+    np.testing.assert_array_equal(lab.rule_args.lam, [0, 0, cfg.lam, cfg.lam, 25, cfg.lam])
     np.testing.assert_array_equal(lab.rule_args.clip, cfg.clips)
+    np.testing.assert_array_equal(lab.rule_args.unlabelled, cfg.unlabelled)
+    assert lab_config(dataclasses.replace(data, task="toy_point"), "smoke", ["prior_unlabelled"],
+                      prior_settings=["unlabelled_segments=16"]).unlabelled_segments == 16
     assert not cfg.reward.next_embedding_head  # BISIM's head only with a bisim rule
     assert lab_config(dataclasses.replace(data, task="toy_point"), "smoke",
                       ["pebble", "bisim"]).reward.next_embedding_head
@@ -173,13 +180,14 @@ def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_and_bisim_chang
     reward; clipping changes it where targets leave [-1, 1], which on this task the oracle
     credit's do (the tiny world model's α is near uniform: its targets stay in range). The
     bisim rule trains its term; the head it adds to every cell leaves PEBBLE's reward as it is
-    without it."""
+    without it. The prior on unlabelled segments changes PRIOR's reward."""
     names = ("pebble", "prior@0", "prior", "prior_no_own_step", "oracle", "oracle clipped",
-             "bisim")
+             "bisim", "prior_unlabelled")
     cfg = tiny(rules=names, credits=("none", "attention", "attention", "attention_no_own_step",
-                                     "oracle", "oracle", "bisimulation"),
-               rule_lams=(None, 0.0, None, None, None, None, None),
-               clips=(False,) * 5 + (True, False), seeds=(0,), budgets=(20,),
+                                     "oracle", "oracle", "bisimulation", "attention"),
+               rule_lams=(None, 0.0, None, None, None, None, None, None),
+               clips=(False,) * 5 + (True, False, False), unlabelled=(False,) * 7 + (True,),
+               unlabelled_segments=8, seeds=(0,), budgets=(20,),
                reward=RewardConfig(hidden_sizes=(32, 32), ensemble_size=3,
                                    next_embedding_head=True))
     cells = {rule: cell for (_, rule, _), cell in by_cell(Lab(cfg, data).run(**quiet)).items()}
@@ -188,10 +196,11 @@ def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_and_bisim_chang
     assert cells["prior@0"]["prior_loss"] > 0  # computed, weighed by 0
     assert cells["oracle"]["target_out_of_range"] > 0
     for ablated, base in (("prior_no_own_step", "prior"), ("oracle clipped", "oracle"),
-                          ("bisim", "pebble")):
+                          ("bisim", "pebble"), ("prior_unlabelled", "prior")):
         assert np.abs(pred[ablated] - pred[base]).mean() > 1e-3, ablated
     assert cells["bisim"]["bisim_loss"] > 0 and cells["bisim"]["bisim_grad_ratio"] > 0
     assert cells["pebble"]["bisim_grad_ratio"] == 0  # computed, weighed by 0
+    assert cells["prior_unlabelled"]["unlabelled_prior_loss"] > 0
     alone = Lab(tiny(rules=("pebble",), credits=("none",), seeds=(0,), budgets=(20,),
                      world_model=None), data).run(**quiet)
     # another program: equal up to its rounding (<= 1e-5 in test_one_seed_equals_its_slot)

@@ -19,7 +19,8 @@ decides the credit α of each stored pair:
   oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
                  bound for any credit rule; the only rule that reads true rewards)
 
-A rule may also clip its targets α_t·R̂ to the reward's range and have its own λ (`clips`,
+A rule may also clip its targets α_t·R̂ to the reward's range, fit the prior on unlabelled
+training segments too (`unlabelled`: prior/unlabelled.py) and have its own λ (`clips`,
 `rule_lams`): PRIOR's ablations and a λ sweep then run side by side, as rules of one program.
 A method whose update has other shapes (SURF: longer stored segments, an unlabelled pool)
 runs in a program of its own (`OWN_PROGRAM`, its `MethodSpec.lab_rule`), one cell per seed,
@@ -66,6 +67,8 @@ from hprior_jax.prior.attention import (credit_from_attention, segment_attention
                                         segment_credit)
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
+from hprior_jax.prior.unlabelled import STREAM as UNLABELLED_STREAM
+from hprior_jax.prior.unlabelled import UnlabelledSegments, rows_of_pool, unlabelled_prior_term
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
            "attention_no_own_step", "bisimulation")
@@ -74,9 +77,12 @@ WORLD_MODEL_CREDITS = ("attention", "attention_nrp", "attention_no_own_step", "p
 NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
 BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
-# lab rules that are `--algo prior` with a flag: (credit, targets clipped)
-ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False),  # --prior.exclude-own-step
-             "prior_clipped": ("attention", True)}  # --prior.clip-targets
+# lab rules that are `--algo prior` with a flag: (credit, targets clipped, prior also on
+# unlabelled segments)
+ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False, False),  # exclude-own-step
+             "prior_clipped": ("attention", True, False),  # --prior.clip-targets
+             "prior_unlabelled": ("attention", False, True)}  # --prior.unlabelled-segments N
+UNLABELLED_SEGMENTS = 64  # the prior_unlabelled rule's N unless --prior-set sets it
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,8 @@ class LabConfig:
     credits: tuple[str, ...]  # the credit of each rule (CREDITS)
     lam: float  # λ of every rule with a credit (the RL presets': 5 DMC, 1000 MetaWorld)
     clips: tuple[bool, ...] = ()  # per rule: targets clipped to [-1, 1] (empty: none)
+    unlabelled: tuple[bool, ...] = ()  # per rule: the prior also on unlabelled segments
+    unlabelled_segments: int = UNLABELLED_SEGMENTS  # drawn afresh each round (prior.unlabelled)
     rule_lams: tuple[float | None, ...] = ()  # per rule: its own λ instead of `lam` (None: lam)
     bisim_lam: float = 0.5  # λ_bisim of the bisim rule (BISIM's default)
     bisim_transitions: int = 4  # transitions per stored-pair row (BISIM's default)
@@ -114,7 +122,7 @@ class LabConfig:
         own = [r for r, c in zip(self.rules, self.credits) if c == OWN_PROGRAM]
         if own != [r for r, _ in self.own_rules]:
             raise ValueError(f"give the lab rule object of every own-program rule {own}")
-        for name in ("clips", "rule_lams"):
+        for name in ("clips", "rule_lams", "unlabelled"):
             if len(getattr(self, name)) not in (0, len(self.rules)):
                 raise ValueError(f"give one of {name} per rule, or none")
         bad = set(self.credits) - set(CREDITS) - {OWN_PROGRAM}
@@ -135,6 +143,10 @@ class LabConfig:
     @property
     def needs_bisim(self) -> bool:
         return "bisimulation" in self.credits
+
+    @property
+    def needs_unlabelled(self) -> bool:
+        return any(self.unlabelled)
 
     @property
     def needs_world_model(self) -> bool:
@@ -170,12 +182,13 @@ class GivenLabels:
 class RuleArgs:
     """What tells one rule from another inside the program (arrays, vmapped over rules):
     its credit (an index into CREDITS), λ of the prior term, whether its targets are clipped,
-    and the weight of the bisimulation term."""
+    the weight of the bisimulation term and whether its prior also fits unlabelled segments."""
 
     credit: jax.Array
     lam: jax.Array
     clip: jax.Array
     bisim_lam: jax.Array
+    unlabelled: jax.Array
 
 
 @struct.dataclass
@@ -238,7 +251,8 @@ class Lab:
                              for c, lam in zip(credits, pick(cfg.rule_lams, None))], jnp.float32),
             clip=jnp.asarray(pick(cfg.clips, False), bool),
             bisim_lam=jnp.asarray([cfg.bisim_lam if c == "bisimulation" else 0.0
-                                   for c in credits], jnp.float32))
+                                   for c in credits], jnp.float32),
+            unlabelled=jnp.asarray(pick(cfg.unlabelled, False), bool))
         d = data
         # passed to the programs as arguments (not baked in as constants), so labs on data
         # of the same shapes share compiled programs
@@ -355,6 +369,12 @@ class Lab:
         prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
         terms = (prior_term(rule.lam, credit, "raw", rule.clip),)
+        if cfg.needs_unlabelled:  # every rule computes it (weight 0 but its rule's)
+            terms += (unlabelled_prior_term(
+                rule.lam * rule.unlabelled,
+                self.unlabelled_segments(jax.random.fold_in(k_train, UNLABELLED_STREAM), ctx,
+                                         train, prefs.capacity),
+                reward_cfg=cfg.reward, clip=rule.clip),)
         if cfg.needs_bisim:  # every rule computes it (weight 0 but the bisim rule's)
             transitions = episode_transitions(jax.random.fold_in(k_train, BISIM_STREAM), train,
                                               prefs.capacity, cfg.bisim_transitions)
@@ -373,10 +393,25 @@ class Lab:
                    # of the rule's own credit (uniform for pebble, which does not use it)
                    "target_out_of_range": unreachable_targets(params, prefs, credit,
                                                               cfg.reward)}
+        if cfg.needs_unlabelled:
+            metrics |= {"unlabelled_prior_loss": m["prior/unlabelled_loss"]}
         if cfg.needs_bisim:
             metrics |= {"bisim_loss": m["bisim/loss"],
                         "bisim_grad_ratio": m["bisim/loss/grad_ratio"]}
         return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
+
+    def unlabelled_segments(self, key, ctx: SeedContext, train: Episodes,
+                            capacity: int) -> UnlabelledSegments:
+        """`unlabelled_segments` training segments drawn afresh, with PRIOR's α (the world
+        model's attention credit), as rows of the preference store."""
+        n, e, length = self.cfg.unlabelled_segments, *train.obs.shape[:2]
+        k_ep, k_start = jax.random.split(key)
+        ep = jax.random.randint(k_ep, (n,), 0, e)
+        steps = jax.random.randint(k_start, (n,), 0, length - self.T + 1)[:, None] + jnp.arange(self.T)
+        obs, act = train.obs[ep[:, None], steps], train.act[ep[:, None], steps]
+        alpha = self.credit(ctx, CREDITS.index("attention"), obs, act,
+                            jnp.zeros(obs.shape[:2]))  # the true reward is not read
+        return rows_of_pool(obs, act, alpha, capacity)
 
     def _given(self, train: Episodes, given: GivenLabels):
         """The given pairs and labels as the round's queries and teacher output."""

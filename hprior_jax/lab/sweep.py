@@ -18,7 +18,8 @@ import numpy as np
 from hprior_jax.lab import world_model_cache
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM,
-                                  WORLD_MODEL_CREDITS, GivenLabels, Lab, LabConfig)
+                                  UNLABELLED_SEGMENTS, WORLD_MODEL_CREDITS, GivenLabels, Lab,
+                                  LabConfig)
 from hprior_jax.lab.metrics import reward_quality
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -31,7 +32,7 @@ def rules() -> dict[str, str]:
     the registry's order, then the lab's controls, then PRIOR's ablations."""
     methods = {n: registry.get(n).lab_credit for n in registry.names()}
     return {**{n: c for n, c in methods.items() if c is not None}, **CONTROLS,
-            **{n: credit for n, (credit, _) in ABLATIONS.items()}}
+            **{n: credit for n, (credit, *_) in ABLATIONS.items()}}
 
 
 def default_rules() -> list[str]:
@@ -127,6 +128,8 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         rules=tuple(rule_names), credits=credits,
         lam=prior.lam if lam is None else lam,
         clips=tuple(r in ABLATIONS and ABLATIONS[r][1] for r, _ in parsed),
+        unlabelled=tuple(r in ABLATIONS and ABLATIONS[r][2] for r, _ in parsed),
+        unlabelled_segments=prior.unlabelled_segments or UNLABELLED_SEGMENTS,
         rule_lams=tuple(lam for _, lam in parsed), budgets=tuple(budgets),
         queries_per_round=queries_per_round or p.queries_per_round,
         feed_type=feed_type or p.feed_type, large_batch=p.large_batch, one_shot=one_shot,

@@ -32,12 +32,15 @@ from flax import struct
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.envs import task_info
 from hprior_jax.loop.state import RunState
-from hprior_jax.methods.pebble import Extension, Pebble, PebbleConfig, PebbleState, pebble_preset
+from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, PebbleState, pebble_preset,
+                                      reward_config)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.prior import world_model as wm
-from hprior_jax.prior.attention import pair_credit
+from hprior_jax.prior.attention import pair_credit, segment_credit
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, prior_term, variant_alpha
+from hprior_jax.prior.unlabelled import STREAM as UNLABELLED_STREAM
+from hprior_jax.prior.unlabelled import rows_of_pool, unlabelled_prior_term
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
 LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
@@ -69,6 +72,10 @@ class PriorConfig:
     clip_targets: bool = False
     """Ablation (not in the paper): the targets α_t·R̂ clipped to [-1, 1], the tanh reward's
     range; unclipped, 1-12% of them were out of reach in the reduced cheetah runs."""
+    unlabelled_segments: int = 0
+    """Ablation (one reading of appendix G.2; 0, the paper's default, is off): the prior also
+    on this many unlabelled segments of the replay buffer, drawn afresh each round, their α
+    from the world model, with the same λ (prior/unlabelled.py)."""
     wm_normalize_obs: bool = False
     """Ablation (not in the paper, nor TWM, which feed raw observations): the world model's
     observations standardised per dimension by the replay buffer's mean and std, recomputed
@@ -103,6 +110,8 @@ class PriorConfig:
                              "world model is noise (use --algo rvar for no world model)")
         if self.wm_order not in wm.PRETRAIN_ORDERS:
             raise ValueError(f"--prior.wm-order must be one of {wm.PRETRAIN_ORDERS}")
+        if self.unlabelled_segments < 0:
+            raise ValueError("--prior.unlabelled-segments must be >= 0")
         if self.wm_update_steps < 0:
             raise ValueError("--prior.wm-update-steps must be >= 0")
         if not 0.0 <= self.wm_dropout < 1.0:
@@ -197,11 +206,30 @@ class WorldModelPrior(Extension):
     def reward_terms(self, rs, ms: PebbleState):
         """α for every stored pair from the current world model, then the prior term."""
         p = self.prior_cfg
+        scaler = self.obs_scaler(rs.replay)
         credit = pair_credit(ms.ext.wm.params, ms.prefs, self.wm_cfg, credit=ms.ext.credit,
                              query=p.attention_query, own_step=not p.exclude_own_step,
-                             obs_scaler=self.obs_scaler(rs.replay))
+                             obs_scaler=scaler)
         ms = ms.replace(ext=ms.ext.replace(credit=credit))
-        return (prior_term(ms.ext.lam, credit, self.variant, clip=p.clip_targets),), ms
+        terms = (prior_term(ms.ext.lam, credit, self.variant, clip=p.clip_targets),)
+        if p.unlabelled_segments:
+            terms += (unlabelled_prior_term(
+                ms.ext.lam, self.unlabelled_segments(rs, ms.ext.wm.params, ms.prefs.capacity,
+                                                     scaler),
+                reward_cfg=reward_config(self.cfg.pebble), clip=p.clip_targets),)
+        return terms, ms
+
+    def unlabelled_segments(self, rs: RunState, params, capacity: int, scaler):
+        """`unlabelled_segments` segments of the replay buffer, drawn afresh for the round,
+        with their α (the method's variant), as rows of the preference store."""
+        p, t = self.prior_cfg, self.segment_len
+        key = jax.random.fold_in(rs.key, UNLABELLED_STREAM)
+        idx = wm.segment_rows(key, rs.replay.size, episode_len=self.kit.env.episode_length,
+                              batch_size=p.unlabelled_segments, segment_len=t)
+        obs, act = rs.replay.obs[idx], rs.replay.action[idx]
+        alpha = segment_credit(params, wm.scaled(scaler, obs), act, self.wm_cfg,
+                               query=p.attention_query, own_step=not p.exclude_own_step)
+        return rows_of_pool(obs, act, variant_alpha(alpha, self.variant), capacity)
 
     def round_metrics(self, ms: PebbleState, reward_cfg) -> dict:
         """Attention entropy (normalised by log T: 1 = uniform) and the fraction of targets
