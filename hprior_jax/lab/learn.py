@@ -404,11 +404,11 @@ class Lab:
                             capacity: int) -> UnlabelledSegments:
         """`unlabelled_segments` training segments drawn afresh, with PRIOR's α (the world
         model's attention credit), as rows of the preference store."""
-        n, e, length = self.cfg.unlabelled_segments, *train.obs.shape[:2]
-        k_ep, k_start = jax.random.split(key)
-        ep = jax.random.randint(k_ep, (n,), 0, e)
-        steps = jax.random.randint(k_start, (n,), 0, length - self.T + 1)[:, None] + jnp.arange(self.T)
-        obs, act = train.obs[ep[:, None], steps], train.act[ep[:, None], steps]
+        e, length = train.obs.shape[:2]
+        flat = lambda x: x.reshape((e * length,) + x.shape[2:])
+        obs, act = wm.sample_segments(key, flat(train.obs), flat(train.act), jnp.int32(e * length),
+                                      episode_len=length, batch_size=self.cfg.unlabelled_segments,
+                                      segment_len=self.T)
         alpha = self.credit(ctx, CREDITS.index("attention"), obs, act,
                             jnp.zeros(obs.shape[:2]))  # the true reward is not read
         return rows_of_pool(obs, act, alpha, capacity)
