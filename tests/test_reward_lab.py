@@ -155,7 +155,7 @@ def test_the_report_is_written_as_each_budget_is_reached(data, tmp_path, monkeyp
     class TwoBudgets:  # Lab's protocol: run(progress, on_budget) with rows per budget
         seconds, compile_seconds, adam_steps, diagnostics = {}, {}, 0, []
 
-        def __init__(self, cfg, data, given):
+        def __init__(self, cfg, data, given, world_model_cache=None):
             pass
 
         def run(self, progress, on_budget):
