@@ -422,9 +422,10 @@ def main(argv=None) -> Path:
         parser.error("write each pair as A:B")
     if len(args.paths) < 2:
         parser.error("give one or more results.csv and then the output folder")
-    if args.tags is not None and len(args.tags) != len(args.paths) - 1:
-        parser.error(f"--tags: one per results.csv ({len(args.paths) - 1}), '' for none")
-    rows, differing = merge_results(args.paths[:-1], args.tags)
+    try:
+        rows, differing = merge_results(args.paths[:-1], args.tags)
+    except ValueError as e:  # --tags not one per results.csv
+        parser.error(f"--tags: {e} ('' for none)")
     if args.only:
         missing = set(args.only) - {row["rule"] for row in rows}
         if missing:

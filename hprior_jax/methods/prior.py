@@ -173,9 +173,9 @@ class WorldModelPrior(Extension):
         Metrics: the training losses and, after the update, `diagnose_world_model`'s."""
         p, ext = self.prior_cfg, rs.method.ext
         key = jax.random.fold_in(rs.key, wm.RANDOM_STREAM)
+        scaler = self.obs_scaler(rs.replay)
         data = dict(obs_buf=rs.replay.obs, act_buf=rs.replay.action, size=rs.replay.size,
-                    cfg=self.wm_cfg, episode_len=self.kit.env.episode_length,
-                    obs_scaler=self.obs_scaler(rs.replay))
+                    cfg=self.wm_cfg, episode_len=self.kit.env.episode_length, obs_scaler=scaler)
         if pretrain:
             state, metrics = wm.pretrain(ext.wm, key, num_steps=p.wm_pretrain_steps,
                                          order=p.wm_order, **data)
@@ -183,10 +183,10 @@ class WorldModelPrior(Extension):
             state, metrics = wm.train(ext.wm, key, num_steps=p.wm_update_steps,
                                       observation_model=False, dynamics_model=True, **data)
         metrics = {**metrics, **self.diagnose_world_model(
-            state.params, rs.replay, jax.random.fold_in(key, DIAGNOSTICS_STREAM))}
+            state.params, rs.replay, jax.random.fold_in(key, DIAGNOSTICS_STREAM), scaler)}
         return rs.replace(method=rs.method.replace(ext=ext.replace(wm=state))), metrics
 
-    def diagnose_world_model(self, params, buf, key) -> dict:
+    def diagnose_world_model(self, params, buf, key, scaler: wm.ObsScaler | None) -> dict:
         """prior.diagnostics on `DIAGNOSTIC_SEGMENTS` segments of the replay buffer (the data
         it trains on, so in-sample; the reward lab measures them on held-out episodes):
         next-state error against persistence and the mean state, and how much of α is
@@ -198,7 +198,7 @@ class WorldModelPrior(Extension):
         perm = jax.vmap(lambda k: jax.random.permutation(k, t))(
             jax.random.split(k_perm, DIAGNOSTIC_SEGMENTS))
         # with wm_normalize_obs the errors are in standardised units, as the model trains
-        diag = world_model_diagnostics(params, wm.scaled(self.obs_scaler(buf), buf.obs[idx]),
+        diag = world_model_diagnostics(params, wm.scaled(scaler, buf.obs[idx]),
                                        buf.action[idx], buf.true_reward[idx], perm, self.wm_cfg,
                                        query=self.prior_cfg.attention_query)
         return {f"prior/{k}": v for k, v in diag.items()}
