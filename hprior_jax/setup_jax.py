@@ -6,6 +6,9 @@ from pathlib import Path
 
 import jax
 
+# programs that compile faster than this are not written (their entries would cost more disk
+# than they save time)
+MIN_COMPILE_SECS = 1.0
 DEFAULT_CACHE = Path(os.environ.get("HPRIOR_JAX_CACHE", Path.home() / ".cache" / "hprior_jax" / "xla"))
 
 
@@ -15,6 +18,6 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     cache = Path(path) if path is not None else DEFAULT_CACHE
     cache.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(cache))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECS)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return cache

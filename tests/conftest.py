@@ -1,6 +1,7 @@
 """Test configuration: XLA flag before jax, persistent compilation cache, small shapes."""
 import os
 
+from tests import xla_opt  # noqa: E402,F401  (before jax: the suite compiles at -O0)
 from tasks import _xla_flags  # noqa: E402,F401  (XLA_FLAGS before jax; see that module)
 os.environ.setdefault("MUJOCO_GL", "disable")
 

@@ -14,12 +14,14 @@ import pytest
 
 from tests.device_runs import GRID_SEEDS, GRID_TASKS, STOP_AFTER_CHUNKS, grid_overrides
 from tests.ports import free_port
+from tests.xla_opt import env_as_runs
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def _env(devices_per_process: int, **extra) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(ROOT), **extra)
+    # compiled as runs do: one device and four agree to rounding there (tests/xla_opt.py)
+    env = env_as_runs(dict(os.environ, PYTHONPATH=str(ROOT), **extra))
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") +
                         f" --xla_force_host_platform_device_count={devices_per_process}")
     return env

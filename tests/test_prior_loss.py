@@ -13,6 +13,7 @@ from hprior_jax.networks import reward_ensemble as re
 from hprior_jax.pbrl import preference as P
 from hprior_jax.prior import loss as L
 from hprior_jax.prior.loss import PairCredit
+from tests.xla_opt import AS_RUNS
 
 DS, DA, T, K = 3, 2, 6, 3
 SMALL = re.RewardConfig(hidden_sizes=(16, 16))
@@ -207,11 +208,13 @@ def _prior_train_counted(params, opt, store, credit, key, lam, variant="raw"):
                           terms=(L.prior_term(lam, credit, variant),))
 
 
-_train_prior = jax.jit(_prior_train_counted, static_argnames="variant")
+# compiled as runs do: λ = 0 is PEBBLE bit for bit there (tests/xla_opt.py)
+_train_prior = jax.jit(_prior_train_counted, static_argnames="variant", compiler_options=AS_RUNS)
 _epoch = jax.jit(lambda p, o, s, c, k, lam, variant="raw": P.train_epoch(
     p, o, s, k, tx=TX, reward_cfg=SMALL, cfg=CFG, terms=(L.prior_term(lam, c, variant),)),
     static_argnames="variant")
-_train_pebble = jax.jit(partial(P.train_reward, tx=TX, reward_cfg=SMALL, cfg=CFG))
+_train_pebble = jax.jit(partial(P.train_reward, tx=TX, reward_cfg=SMALL, cfg=CFG),
+                        compiler_options=AS_RUNS)
 
 
 def test_lambda_zero_is_pebble_and_lambda_is_traced():

@@ -11,6 +11,7 @@ import pytest
 
 from hprior_jax.networks import transformer_xl as txl
 from hprior_jax.prior import world_model as wm
+from tests.xla_opt import AS_RUNS
 
 DS, DA, T = 3, 2, 6
 
@@ -149,7 +150,8 @@ OBS_BUF, ACT_BUF = _rollouts()
 SIZE = jnp.asarray(EP * N_EP, jnp.int32)
 STEPS = 40
 _train = jax.jit(partial(wm.train, cfg=CFG, episode_len=EP, num_steps=STEPS),
-                 static_argnames=("observation_model", "dynamics_model"))
+                 static_argnames=("observation_model", "dynamics_model"),
+                 compiler_options=AS_RUNS)  # compared bit for bit with pretrain below
 _init = jax.jit(wm.init, static_argnums=1)
 _obs_loss = jax.jit(lambda p, o: wm.observation_loss(p, o, CFG)[0])
 _dyn_loss = jax.jit(lambda p, o, a: wm.dynamics_loss(p.dyn, p.obs, o, a, None, CFG, deterministic=True)[0])
@@ -199,11 +201,12 @@ def test_pretrain_joint_is_both_at_once_and_observation_first_is_the_two_in_turn
     key = jax.random.key(4)
     pretrain = partial(wm.pretrain, obs_buf=OBS_BUF, act_buf=ACT_BUF, size=SIZE, cfg=CFG,
                        episode_len=EP, num_steps=STEPS)
-    joint, _ = jax.jit(partial(pretrain, order="joint"))(st0, key)
+    joint, _ = jax.jit(partial(pretrain, order="joint"), compiler_options=AS_RUNS)(st0, key)
     both, _ = _train(st0, key, OBS_BUF, ACT_BUF, SIZE, observation_model=True,
                      dynamics_model=True)
     assert _leaves_equal(joint.params, both.params)
-    first, m = jax.jit(partial(pretrain, order="observation_first"))(st0, key)
+    first, m = jax.jit(partial(pretrain, order="observation_first"),
+                       compiler_options=AS_RUNS)(st0, key)
     k_obs, k_dyn = jax.random.split(key)
     obs_only, _ = _train(st0, k_obs, OBS_BUF, ACT_BUF, SIZE, observation_model=True,
                          dynamics_model=False)
