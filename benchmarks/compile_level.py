@@ -1,0 +1,62 @@
+"""XLA's backend optimisation level against start-up and run speed (issue 23).
+
+`python -m benchmarks.compile_level [--levels 3 1 0] [--repeats 1]`: `hprior train --task
+cheetah_run --algo pebble --preset reduced` on one seed for 12000 steps (5000 random steps,
+evaluations at 5000 and 10000, the first feedback round at 10000), once per level with
+`XLA_FLAGS=... --xla_backend_optimization_level=N` and an empty compilation cache ("default":
+XLA's own level, no flag, the reference run of the same script). The test suite compiles at
+-O0 (tests/xla_opt.py), where compiling is about half as long; this measures what a level
+costs a run: seconds to the first env step, compile seconds the main thread waited for, the
+env + SAC chunks and the evaluation (run speed), and the whole wall. Writes
+benchmarks/results/compile_level.csv.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from pathlib import Path
+
+from benchmarks._timing import write_rows
+from benchmarks.end_to_end import one_run
+
+OUT = Path(__file__).parent / "results" / "compile_level.csv"
+FIELDS = ["level", "repeat", "first_step_s", "compile_s", "chunk_s", "eval_s", "event_s",
+          "wall_s", "env_steps_per_s", "steps"]
+
+
+def flags_at(level: str) -> dict:
+    """XLA_FLAGS of this process with the level added ("default": unchanged)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    flags = " ".join(f for f in flags.split() if "xla_backend_optimization_level" not in f)
+    if level != "default":
+        flags += f" --xla_backend_optimization_level={level}"
+    return {"XLA_FLAGS": flags.strip()}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--levels", nargs="+", default=["default", "1", "0"])
+    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--preset", default="reduced", choices=["smoke", "reduced"])
+    p.add_argument("--steps", type=int, default=12_000)
+    p.add_argument("--out", type=Path, default=OUT)
+    args = p.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.repeats):
+            for level in args.levels:
+                name = f"level_{level}_{r}"
+                row = one_run("cheetah_run", "pebble", 1, args.preset, args.steps, Path(tmp),
+                              extra_env=flags_at(level), name=name)
+                row.update(level=level, repeat=r)
+                rows.append(row)
+                print(f"{name}: first env step {row['first_step_s']:.1f} s, compile waited "
+                      f"{row['compile_s']:.1f} s, chunks {row['chunk_s']:.1f} s, eval "
+                      f"{row['eval_s']:.1f} s, wall {row['wall_s']:.1f} s", flush=True)
+    write_rows([{k: (round(row[k], 2) if isinstance(row[k], float) else row[k]) for k in FIELDS}
+                for row in rows], args.out)
+
+
+if __name__ == "__main__":
+    main()
