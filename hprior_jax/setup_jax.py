@@ -6,8 +6,7 @@ from pathlib import Path
 
 import jax
 
-# programs that compile faster than this are not written (their entries would cost more disk
-# than they save time)
+# programs that compile in less time are not written to the cache (a test lowers it)
 MIN_COMPILE_SECS = 1.0
 DEFAULT_CACHE = Path(os.environ.get("HPRIOR_JAX_CACHE", Path.home() / ".cache" / "hprior_jax" / "xla"))
 
