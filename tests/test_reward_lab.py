@@ -78,8 +78,8 @@ def test_rules_are_the_registered_reward_learners_and_the_controls():
     learners = [n for n in registry.names() if registry.get(n).lab_credit is not None]
     assert ALL == learners + ["positional", "oracle"]
     assert registry.REFERENCE not in ALL  # SAC learns no reward
-    assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped",
-                                   "prior_unlabelled"]  # asked for by name
+    assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped", "prior_unlabelled",
+                                   "rvar_unlabelled", "positional_unlabelled"]  # by name
     assert rules()["bisim"] == "bisimulation"
 
 
@@ -170,6 +170,34 @@ def test_the_report_is_written_as_each_budget_is_reached(data, tmp_path, monkeyp
                   tmp_path / "lab")
     assert seen == [1 + 4, 1 + 8]  # header + 2 seeds x 2 rules, then the second budget's too
     assert "run_info.json" in {p.name for p in (tmp_path / "lab").iterdir()}
+
+
+def test_unlabelled_segments_carry_their_rules_credit(data):
+    """prior_unlabelled's controls differ from it only in the credit of the same unlabelled
+    segments: uniform (rvar_unlabelled), the world model's mean profile
+    (positional_unlabelled), or the segment's own attention (prior_unlabelled)."""
+    import jax
+
+    from hprior_jax.lab.learn import CREDITS
+
+    names = ["prior_unlabelled", "rvar_unlabelled", "positional_unlabelled"]
+    cfg = lab_config(dataclasses.replace(data, task="toy_point"), "smoke", names)
+    assert cfg.credits == ("attention", "uniform", "positional") and all(cfg.unlabelled)
+    lab = Lab(tiny(rules=tuple(names), credits=cfg.credits, unlabelled=cfg.unlabelled,
+                   unlabelled_segments=16, seeds=(0,)), data)
+    ctx = lab.seed_context(jax.random.PRNGKey(0), lab.train)
+    pools = {c: lab.unlabelled_segments(jax.random.PRNGKey(1), ctx, lab.train, 32,
+                                        CREDITS.index(c))
+             for c in cfg.credits}
+    for c in cfg.credits:  # the same segments, row r holding segment r mod 16
+        np.testing.assert_array_equal(pools[c].obs, pools["attention"].obs)
+        np.testing.assert_array_equal(pools[c].obs[16:], pools[c].obs[:16])
+    np.testing.assert_allclose(pools["uniform"].alpha, 1.0 / T)
+    np.testing.assert_allclose(pools["positional"].alpha,
+                               np.broadcast_to(ctx.profile, (32, T)), rtol=1e-6)
+    attention = np.asarray(pools["attention"].alpha)
+    np.testing.assert_allclose(attention.sum(-1), 1.0, rtol=1e-5)
+    assert np.abs(attention[:16] - attention[:16].mean(0)).max() > 1e-4  # per segment
 
 
 @pytest.mark.slow  # CI time (~100 s)

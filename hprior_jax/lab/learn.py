@@ -77,11 +77,14 @@ WORLD_MODEL_CREDITS = ("attention", "attention_nrp", "attention_no_own_step", "p
 NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
 BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
-# lab rules that are `--algo prior` with a flag: (credit, targets clipped, prior also on
-# unlabelled segments)
+# lab rules asked for by name: (credit, targets clipped, prior also on unlabelled segments).
+# The prior_* ones are `--algo prior` with a flag; the other two are prior_unlabelled's
+# controls (no method): the same unlabelled segments under uniform or positional credit.
 ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False, False),  # exclude-own-step
              "prior_clipped": ("attention", True, False),  # --prior.clip-targets
-             "prior_unlabelled": ("attention", False, True)}  # --prior.unlabelled-segments N
+             "prior_unlabelled": ("attention", False, True),  # --prior.unlabelled-segments N
+             "rvar_unlabelled": ("uniform", False, True),
+             "positional_unlabelled": ("positional", False, True)}
 UNLABELLED_SEGMENTS = 64  # the prior_unlabelled rule's N unless --prior-set sets it
 
 
@@ -373,7 +376,7 @@ class Lab:
             terms += (unlabelled_prior_term(
                 rule.lam * rule.unlabelled,
                 self.unlabelled_segments(jax.random.fold_in(k_train, UNLABELLED_STREAM), ctx,
-                                         train, prefs.capacity),
+                                         train, prefs.capacity, rule.credit),
                 reward_cfg=cfg.reward, clip=rule.clip),)
         if cfg.needs_bisim:  # every rule computes it (weight 0 but the bisim rule's)
             transitions = episode_transitions(jax.random.fold_in(k_train, BISIM_STREAM), train,
@@ -400,17 +403,17 @@ class Lab:
                         "bisim_grad_ratio": m["bisim/loss/grad_ratio"]}
         return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
 
-    def unlabelled_segments(self, key, ctx: SeedContext, train: Episodes,
-                            capacity: int) -> UnlabelledSegments:
-        """`unlabelled_segments` training segments drawn afresh, with PRIOR's α (the world
-        model's attention credit), as rows of the preference store."""
+    def unlabelled_segments(self, key, ctx: SeedContext, train: Episodes, capacity: int,
+                            credit_id) -> UnlabelledSegments:
+        """`unlabelled_segments` training segments drawn afresh, with the rule's credit
+        `credit_id` (an index into CREDITS), as rows of the preference store."""
         e, length = train.obs.shape[:2]
         flat = lambda x: x.reshape((e * length,) + x.shape[2:])
         obs, act = wm.sample_segments(key, flat(train.obs), flat(train.act), jnp.int32(e * length),
                                       episode_len=length, batch_size=self.cfg.unlabelled_segments,
                                       segment_len=self.T)
-        alpha = self.credit(ctx, CREDITS.index("attention"), obs, act,
-                            jnp.zeros(obs.shape[:2]))  # the true reward is not read
+        # no true reward: the oracle credit would be uniform here (no rule asks for it)
+        alpha = self.credit(ctx, credit_id, obs, act, jnp.zeros(obs.shape[:2]))
         return rows_of_pool(obs, act, alpha, capacity)
 
     def _given(self, train: Episodes, given: GivenLabels):
