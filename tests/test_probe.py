@@ -19,6 +19,16 @@ def test_probe_episodes_reveal_the_gated_action_later():
         assert t + cfg.delay >= cfg.segment_len and t + cfg.delay < cfg.episode_len
 
 
+def test_the_every_step_control_reveals_each_action_delay_steps_later():
+    cfg = ProbeConfig(reveal="every_step", delay=5)
+    obs, act, t_star = (np.asarray(x) for x in probe_episodes(jax.random.PRNGKey(3), 4, cfg))
+    assert not obs[..., 0].any()  # no gate
+    np.testing.assert_array_equal(obs[:, :5, 1:3], 0)
+    np.testing.assert_array_equal(obs[:, 5:, 1], 1)
+    np.testing.assert_array_equal(obs[:, 5:, 2], act[:, :-5, 0])
+    np.testing.assert_array_equal(obs[np.arange(4), t_star + 5, 2], act[np.arange(4), t_star, 0])
+
+
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
     "a finding, 2026-12-01 (benchmarks/results/probe/): the reduced-size world model after "

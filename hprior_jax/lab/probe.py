@@ -9,8 +9,14 @@ that ends just before the reveal should then put its mass on t*, not on the last
     obs_t = [gate_t, reveal_t, value_t, sin(ω t + φ)]     act_t ~ U[-1, 1]
     gate_t = 1[t = t*], reveal_t = 1[t = t* + delay], value_t = a_{t*} · reveal_t
 
+With `reveal="every_step"` (a control) every observation from step `delay` on reveals the
+action taken `delay` steps before it (reveal_t = 1[t >= delay], value_t = a_{t-delay}, no
+gate): the same look-back, but at every step instead of once an episode, so a world model that
+fails the probe yet learns this one can attend back and lacks the training signal.
+
     python -m hprior_jax.lab.probe --steps 3000 [--delay 30]   # prints the numbers as JSON
     python -m hprior_jax.lab.probe --order observation_first --prior-set wm_lr=0.001
+    python -m hprior_jax.lab.probe --reveal every_step --delay 5
 """
 from __future__ import annotations
 
@@ -27,6 +33,7 @@ from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
 
 OBS_SIZE, ACT_SIZE = 4, 1
+REVEALS = ("once", "every_step")
 
 
 @dataclass(frozen=True)
@@ -38,19 +45,30 @@ class ProbeConfig:
     steps: int = 3000  # world-model updates (observation and dynamics models together)
     order: str = "joint"  # or "observation_first": `steps` of each model, one after the other
     settings: tuple[str, ...] = ()  # FIELD=VALUE over the reduced preset's PriorConfig
+    reveal: str = "once"  # or "every_step": a_{t-delay} shown at every step (the control)
+
+    def __post_init__(self):
+        if self.reveal not in REVEALS:
+            raise ValueError(f"reveal must be one of {REVEALS}, got {self.reveal!r}")
 
 
 def probe_episodes(key: jax.Array, n: int, cfg: ProbeConfig):
     """obs[n, L, 4], act[n, L, 1], t_star[n]; t* leaves room for a full segment before the
-    reveal (t* + delay >= segment_len) and for the reveal inside the episode."""
+    reveal (t* + delay >= segment_len) and for the reveal inside the episode. Every step:
+    t* is only where the evaluation reads, obs[t* + delay] shows a_{t*} either way."""
     k_t, k_a, k_p = jax.random.split(key, 3)
     L, d = cfg.episode_len, cfg.delay
     t_star = jax.random.randint(k_t, (n,), cfg.segment_len - d, L - d)
     act = jax.random.uniform(k_a, (n, L, ACT_SIZE), minval=-1.0, maxval=1.0)
     t = jnp.arange(L)
-    gate = (t[None] == t_star[:, None]).astype(jnp.float32)
-    reveal = (t[None] == (t_star + d)[:, None]).astype(jnp.float32)
-    value = reveal * act[jnp.arange(n), t_star, 0][:, None]
+    if cfg.reveal == "every_step":
+        gate = jnp.zeros((n, L))
+        reveal = jnp.broadcast_to((t >= d).astype(jnp.float32), (n, L))
+        value = reveal * jnp.roll(act[..., 0], d, axis=1)  # a_{t-d}; the wrapped steps are 0
+    else:
+        gate = (t[None] == t_star[:, None]).astype(jnp.float32)
+        reveal = (t[None] == (t_star + d)[:, None]).astype(jnp.float32)
+        value = reveal * act[jnp.arange(n), t_star, 0][:, None]
     phase = jax.random.uniform(k_p, (n, 1), maxval=2 * jnp.pi)
     wave = jnp.sin(0.3 * t[None] + phase)
     return jnp.stack([gate, reveal, value, wave], -1), act, t_star
@@ -136,11 +154,14 @@ def main() -> None:
     parser.add_argument("--delay", type=int, default=ProbeConfig.delay)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--order", default="joint", choices=wm.PRETRAIN_ORDERS)
+    parser.add_argument("--reveal", default="once", choices=REVEALS,
+                        help="every_step: the control with the look-back at every step")
     parser.add_argument("--prior-set", nargs="+", default=(), metavar="FIELD=VALUE",
                         help="the world model's settings, e.g. wm_layers=4 wm_lr=0.001")
     args = parser.parse_args()
     out = run_probe(ProbeConfig(episodes=args.episodes, steps=args.steps, delay=args.delay,
-                                order=args.order, settings=tuple(args.prior_set)), args.seed)
+                                order=args.order, settings=tuple(args.prior_set),
+                                reveal=args.reveal), args.seed)
     print(json.dumps(out, indent=2))
 
 
