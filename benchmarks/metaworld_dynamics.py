@@ -258,14 +258,19 @@ def main():
                    help="scene of the port (default: the registered port)")
     p.add_argument("--wrist", default=None,
                    help="wrist collider: box, mesh (C only: port_c) or a number of hull points")
+    p.add_argument("--keep-cylinders", action="store_true",
+                   help="paired cylinders stay cylinders (C only: port_c)")
     p.add_argument("--label", default=None, help="label of the port rows (default: variant)")
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args()
     warnings.filterwarnings("ignore", message="Constant")  # metaworld policies' p warnings
-    label = args.label or "-".join(x for x in (args.variant, args.wrist) if x) or "registered"
+    label = args.label or "-".join(x for x in (args.variant, args.wrist, args.keep_cylinders
+                                                and "cylinders") if x) or "registered"
+    options = {"keep_cylinders": True} if args.keep_cylinders else {}
     rows = []
     for name in args.tasks:
-        task = (make_task(name, args.variant, args.wrist) if set(args.sides) - {"metaworld"}
+        task = (make_task(name, args.variant, args.wrist, **options)
+                if set(args.sides) - {"metaworld"}
                 else None)
         results = {}
         for side in args.sides:

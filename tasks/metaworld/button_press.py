@@ -48,6 +48,12 @@ machine; the 385 above is an earlier measurement). C MuJoCo was as sensitive to
 the shape: x1.09 with 64 directions, x1.01 with 128 but the button at -0.095.
 Before the free hand kept metaworld's constraint weights (sawyer.py): return x1.02 but the
 button went to -0.101 and hand-mocap x0.63.
+Ruled out on 2026-12-03 (C MuJoCo, the registered pairs, box as one block, 20 episodes:
+`python -m benchmarks.metaworld_dynamics --tasks button_press --sides metaworld port_c
+--wrist W [--keep-cylinders]`): the hull's size, x1.22 / x1.21 / x1.22 with 96 / 250 / 500
+of its points; the cap made a box, x1.29 with the wrist box and x1.24 with metaworld's mesh
+when the cap stays a cylinder. What brings x0.99 is the mesh against the 4 slabs, i.e. the
+wrist's tapered front entering the hole.
 """
 from __future__ import annotations
 

@@ -199,7 +199,8 @@ def _wrist_hull_points(model, data, g, body, k):
 
 
 def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
-                metaworld_invweights: bool = True) -> tuple[mujoco.MjModel, dict]:
+                metaworld_invweights: bool = True,
+                keep_cylinders: bool = False) -> tuple[mujoco.MjModel, dict]:
     """The simplified MuJoCo model of a metaworld scene (see module docstring).
 
     arm=True: metaworld's arm kept with its joints, inertias and damping (only its geoms go);
@@ -210,7 +211,9 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     exact shapes for C MuJoCo diagnostics only; MJX has no cylinder-box collision and the
     mesh is far too big for it).
     metaworld_invweights: give every kept body and joint metaworld's compiled inverse weights
-    (see `_copy_invweights`); False keeps the simplified scene's own (the first ports)."""
+    (see `_copy_invweights`); False keeps the simplified scene's own (the first ports).
+    keep_cylinders: paired cylinders stay cylinders with any wrist (C MuJoCo diagnostics
+    only, as with the mesh)."""
     path = metaworld_xml_path(scene.xml)
     spec = mujoco.MjSpec.from_file(path)
     # name every geom so pairs can refer to it
@@ -352,7 +355,8 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     exact = {mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_SPHERE,
              mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER}
     for g in spec.geoms:
-        if g.type != mujoco.mjtGeom.mjGEOM_CYLINDER or g.name not in used or wrist == "mesh":
+        if (g.type != mujoco.mjtGeom.mjGEOM_CYLINDER or g.name not in used or wrist == "mesh"
+                or keep_cylinders):
             continue
         partners = [b if a == g.name else a for a, b in pair_names if g.name in (a, b)]
         if all(kinds[p] in exact for p in partners):
@@ -499,7 +503,7 @@ class SawyerTask(Task):
 
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
                  ls_iterations: int = 10, arm: bool = True, wrist: str | int | None = None,
-                 metaworld_invweights: bool = True):
+                 metaworld_invweights: bool = True, keep_cylinders: bool = False):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
         That is metaworld v3's own default (`_partially_observable = True`) and what BPref
@@ -510,15 +514,27 @@ class SawyerTask(Task):
         tolerance 1e-10; MJX runs its solver loop until the tolerance is met, i.e. nearly all
         50 every substep. Newton converges in a few iterations on these small contact sets;
         5 / 10 roughly doubled batch-64 throughput on drawer_open and kept its scripted-policy
-        success and drift (benchmarks/metaworld_parity.py). Pass 50, 50 for metaworld's."""
+        success and drift (benchmarks/metaworld_parity.py). Pass 50, 50 for metaworld's.
+
+        wrist="mesh" or keep_cylinders=True build metaworld's exact shapes for C MuJoCo
+        diagnostics (`mj_model`); MJX cannot collide them, so `model` (the MJX step's) is
+        then the box-wrist scene's: right for kinematics, not for contacts."""
         self.partially_observable = partially_observable
         self.arm = arm
         self.wrist = self.wrist if wrist is None else wrist
         self.mj_model, self.scene_info = build_scene(
-            self.scene, arm=arm, wrist=self.wrist, metaworld_invweights=metaworld_invweights)
+            self.scene, arm=arm, wrist=self.wrist, metaworld_invweights=metaworld_invweights,
+            keep_cylinders=keep_cylinders)
         self.mj_model.opt.iterations = solver_iterations
         self.mj_model.opt.ls_iterations = ls_iterations
-        self.model = put_model(self.mj_model)
+        mjx_scene = self.mj_model
+        if self.wrist == "mesh" or keep_cylinders:  # shapes MJX cannot collide: its model
+            # (kinematics, reset) is the scene with the box wrist, same bodies, joints, sites
+            mjx_scene, _ = build_scene(self.scene, arm=arm, wrist="box",
+                                       metaworld_invweights=metaworld_invweights)
+            mjx_scene.opt.iterations, mjx_scene.opt.ls_iterations = (solver_iterations,
+                                                                     ls_iterations)
+        self.model = put_model(mjx_scene)
         self.control_timestep = FRAME_SKIP * float(self.mj_model.opt.timestep)
         m = self.mj_model
         self._mocap_low = jnp.asarray(self.hand_low, jnp.float32)

@@ -60,6 +60,24 @@ def test_scene_keeps_metaworld_constraint_weights():
         m.body("hand").id][0]
 
 
+def test_exact_shape_scenes_build_for_c_mujoco():
+    """`--wrist mesh` and `--keep-cylinders` (C MuJoCo diagnostics, benchmarks'
+    port_c side): the cap stays a cylinder, the wrist is metaworld's mesh, and the MJX
+    model (kinematics, reset) is the box-wrist scene's, body for body."""
+    import mujoco
+
+    exact = make_task("button_press", wrist="mesh")
+    kept = make_task("button_press", keep_cylinders=True)
+    registered = tasks.make("button_press")
+    paired = lambda m: m.geom_type[np.r_[m.pair_geom1, m.pair_geom2]].tolist()
+    for task in (exact, kept):
+        assert mujoco.mjtGeom.mjGEOM_CYLINDER in paired(task.mj_model)
+        assert task.model.nbody == task.mj_model.nbody and task.model.njnt == task.mj_model.njnt
+    assert mujoco.mjtGeom.mjGEOM_CYLINDER not in paired(registered.mj_model)  # MJX's: a box
+    assert exact.mj_model.geom_type[exact.mj_model.geom("wrist").id] == mujoco.mjtGeom.mjGEOM_MESH
+    assert kept.mj_model.geom_type[kept.mj_model.geom("wrist").id] == mujoco.mjtGeom.mjGEOM_BOX
+
+
 def test_drawer_stops_where_metaworld_stops():
     """Closed loop, the port's scene stepped by C MuJoCo (no MJX compile; the MJX port runs
     the same model, see the slow test): over the first 150 steps (reach, hook, pull to the
