@@ -77,6 +77,28 @@ def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkey
         np.testing.assert_allclose(np.asarray(alpha).sum(-1), 1.0, rtol=1e-5)
 
 
+def test_rvar_fits_its_uniform_prior_on_unlabelled_segments_too(tmp_path, monkeypatch):
+    """--rvar.unlabelled-segments N (the lab's rvar_unlabelled): each round's update also
+    fits the prior on N replay segments, every step credited 1/T."""
+    import hprior_jax.methods.rvar as rvar_method
+
+    pools = []
+    real_rows = rvar_method.rows_of_pool
+    monkeypatch.setattr(rvar_method, "rows_of_pool",
+                        lambda obs, act, alpha, capacity: pools.append((obs, alpha))
+                        or real_rows(obs, act, alpha, capacity))
+    cfg = _cfg(tmp_path, "rvar_unlabelled", algo="rvar")
+    cfg = dataclasses.replace(cfg, rvar=dataclasses.replace(cfg.rvar, unlabelled_segments=8))
+    _run(cfg)
+    t = cfg.pebble.segment_len
+    assert len(pools) == 2  # traced by the first round's program and the later rounds'
+    assert all(obs.shape[:2] == (8, t) and alpha.shape == (8, t) for obs, alpha in pools)
+    rounds = [m for m in _records(tmp_path / "rvar_unlabelled") if "prior/unlabelled_loss" in m]
+    assert len(rounds) == 2 and all(m["prior/unlabelled_loss"] > 0 for m in rounds)
+    with pytest.raises(ValueError, match="unlabelled-segments"):
+        rvar_method.RvarConfig(unlabelled_segments=-1)
+
+
 class _Runs(dict):
     """name -> (cfg, final state, run dir), each run on first use (the fast suite needs only
     PRIOR's)."""

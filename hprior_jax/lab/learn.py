@@ -79,11 +79,12 @@ BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the oth
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
 # lab rules asked for by name: (credit, targets clipped, prior also on unlabelled segments).
 # The prior_* ones are `--algo prior` with a flag; the other two are prior_unlabelled's
-# controls (no method): the same unlabelled segments under uniform or positional credit.
+# controls, the same unlabelled segments under uniform credit (`--algo rvar
+# --rvar.unlabelled-segments N`) or positional credit (no method).
 ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False, False),  # exclude-own-step
              "prior_clipped": ("attention", True, False),  # --prior.clip-targets
              "prior_unlabelled": ("attention", False, True),  # --prior.unlabelled-segments N
-             "rvar_unlabelled": ("uniform", False, True),
+             "rvar_unlabelled": ("uniform", False, True),  # --rvar.unlabelled-segments N
              "positional_unlabelled": ("positional", False, True)}
 UNLABELLED_SEGMENTS = 64  # the prior_unlabelled rule's N unless --prior-set sets it
 

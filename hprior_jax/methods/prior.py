@@ -39,8 +39,7 @@ from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import pair_credit, segment_credit
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
 from hprior_jax.prior.loss import PairCredit, prior_term, variant_alpha
-from hprior_jax.prior.unlabelled import STREAM as UNLABELLED_STREAM
-from hprior_jax.prior.unlabelled import rows_of_pool, unlabelled_prior_term
+from hprior_jax.prior.unlabelled import replay_segments, rows_of_pool, unlabelled_prior_term
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
 LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
@@ -222,11 +221,10 @@ class WorldModelPrior(Extension):
     def unlabelled_segments(self, rs: RunState, params, capacity: int, scaler):
         """`unlabelled_segments` segments of the replay buffer, drawn afresh for the round,
         with their α (the method's variant), as rows of the preference store."""
-        p, t = self.prior_cfg, self.segment_len
-        key = jax.random.fold_in(rs.key, UNLABELLED_STREAM)
-        idx = wm.segment_rows(key, rs.replay.size, episode_len=self.kit.env.episode_length,
-                              batch_size=p.unlabelled_segments, segment_len=t)
-        obs, act = rs.replay.obs[idx], rs.replay.action[idx]
+        p = self.prior_cfg
+        obs, act = replay_segments(rs.key, rs.replay, p.unlabelled_segments,
+                                   segment_len=self.segment_len,
+                                   episode_len=self.kit.env.episode_length)
         alpha = segment_credit(params, wm.scaled(scaler, obs), act, self.wm_cfg,
                                query=p.attention_query, own_step=not p.exclude_own_step)
         return rows_of_pool(obs, act, variant_alpha(alpha, self.variant), capacity)

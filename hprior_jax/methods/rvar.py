@@ -12,20 +12,28 @@ from flax import struct
 
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.envs import task_info
-from hprior_jax.methods.pebble import Extension, Pebble, PebbleConfig, PebbleState, pebble_preset
+from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, PebbleState, pebble_preset,
+                                      reward_config)
 from hprior_jax.methods.prior import LAMBDA
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.prior.loss import PairCredit, prior_term
+from hprior_jax.prior.unlabelled import replay_segments, rows_of_pool, unlabelled_prior_term
 
 
 @dataclass(frozen=True)
 class RvarConfig:
     lam: float = 5.0
     """λ, the weight of the uniform prior (the presets use PRIOR's: 5 DMC, 1000 MetaWorld)."""
+    unlabelled_segments: int = 0
+    """Not in the paper (0 is off): the uniform prior also on this many unlabelled segments
+    of the replay buffer, drawn afresh each round, with the same λ (as
+    --prior.unlabelled-segments; the lab's rule `rvar_unlabelled`)."""
 
     def __post_init__(self):
         if self.lam < 0:
             raise ValueError(f"--rvar.lam must be >= 0, got {self.lam}")
+        if self.unlabelled_segments < 0:
+            raise ValueError("--rvar.unlabelled-segments must be >= 0")
 
 
 @struct.dataclass
@@ -34,7 +42,8 @@ class RvarState:
 
 
 class UniformPrior(Extension):
-    def __init__(self, cfg):
+    def __init__(self, cfg, kit):
+        self.cfg, self.kit = cfg, kit
         self.lam = cfg.rvar.lam
         self.credit = partial(PairCredit.uniform, cfg.pebble.max_feedback, cfg.pebble.segment_len)
 
@@ -42,7 +51,15 @@ class UniformPrior(Extension):
         return RvarState(lam=jnp.asarray(self.lam, jnp.float32))
 
     def reward_terms(self, rs, ms: PebbleState):
-        return (prior_term(ms.ext.lam, self.credit(), "uniform"),), ms
+        terms = (prior_term(ms.ext.lam, self.credit(), "uniform"),)
+        num, t = self.cfg.rvar.unlabelled_segments, self.cfg.pebble.segment_len
+        if num:
+            obs, act = replay_segments(rs.key, rs.replay, num, segment_len=t,
+                                       episode_len=self.kit.env.episode_length)
+            rows = rows_of_pool(obs, act, jnp.full(obs.shape[:2], 1.0 / t), ms.prefs.capacity)
+            terms += (unlabelled_prior_term(ms.ext.lam, rows,
+                                            reward_cfg=reward_config(self.cfg.pebble)),)
+        return terms, ms
 
 
 def rvar_preset(task: str, preset: str, sac: SACConfig) -> dict:
@@ -51,6 +68,6 @@ def rvar_preset(task: str, preset: str, sac: SACConfig) -> dict:
 
 
 def spec(name: str) -> MethodSpec:
-    return MethodSpec(name=name, build=lambda cfg, kit: Pebble(cfg, kit, UniformPrior(cfg)),
+    return MethodSpec(name=name, build=lambda cfg, kit: Pebble(cfg, kit, UniformPrior(cfg, kit)),
                       sections={"pebble": PebbleConfig, "rvar": RvarConfig}, preset=rvar_preset,
                       lab_credit="uniform")

@@ -1,6 +1,7 @@
 """PRIOR's prior on unlabelled segments: an ablation, one reading of appendix G.2 ("we reuse
 the trajectory buffer (as used by Hindsight PRIOR)"); the paper's prior, the default, is on
-the labelled pairs only.
+the labelled pairs only. RVAR takes it too, with uniform credit (its control: in the walker
+lab the segments, not α, carried the gain).
 
 The prior's target α_t · R̂_k(σ) needs no label, only the world model's α and the member's
 own return, so it can also shape the reward on segments nobody labelled. Each feedback round
@@ -17,6 +18,7 @@ import jax.numpy as jnp
 from hprior_jax.networks.reward_ensemble import RewardConfig, per_member_rewards
 from hprior_jax.pbrl.preference import RewardTerm
 from hprior_jax.prior.loss import prior_loss
+from hprior_jax.prior.world_model import segment_rows
 
 STREAM = 0x756E  # folded off a round's key: the draw leaves the round's other draws alone
 
@@ -29,6 +31,15 @@ class UnlabelledSegments:
     obs: jax.Array
     act: jax.Array
     alpha: jax.Array
+
+
+def replay_segments(run_key: jax.Array, replay, num: int, *, segment_len: int,
+                    episode_len: int) -> tuple[jax.Array, jax.Array]:
+    """`num` segments of the replay buffer that stay inside one episode, drawn afresh each
+    round off the run's key: obs[num, T, ds], act[num, T, da]."""
+    idx = segment_rows(jax.random.fold_in(run_key, STREAM), replay.size,
+                       episode_len=episode_len, batch_size=num, segment_len=segment_len)
+    return replay.obs[idx], replay.action[idx]
 
 
 def rows_of_pool(obs: jax.Array, act: jax.Array, alpha: jax.Array,
