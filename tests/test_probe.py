@@ -45,6 +45,18 @@ def test_a_trained_world_model_credits_the_critical_step():
     assert out["alpha_at_t_star"]["mean"] > out["alpha_last_8"]["mean"], out
 
 
+@pytest.mark.slow
+def test_a_world_model_that_learns_a_look_back_credits_the_step_it_reads():
+    """The every-step control at delay 5 (2026-12-03, `--reveal every_step --delay 5 --steps
+    1500`: reveal MSE 0.005 against 0.333 predicting 0, α on t* 0.267, the largest α of every
+    segment): when the world model learns to read an earlier action, α finds that step. So
+    the failing probe above is about what the world model learns, not about reading α."""
+    out = run_probe(ProbeConfig(steps=1500, delay=5, reveal="every_step"), seed=0)
+    assert out["reveal_mse"] < 0.1 * out["reveal_mse_predict_zero"], out
+    assert out["alpha_at_t_star"]["mean"] > 10 * out["uniform"], out
+    assert out["t_star_rank_1_share"] > 0.9, out
+
+
 @pytest.mark.slow  # CI time (~20 s of compiling); wm.pretrain's order is tested fast
 def test_probe_takes_the_pretraining_order_and_world_model_settings():
     """The probe's ablations: `order` and FIELD=VALUE settings reach the world model it
