@@ -1,6 +1,7 @@
 """XLA's backend optimisation level against start-up and run speed (issue 23).
 
-`python -m benchmarks.compile_level [--levels 3 1 0] [--repeats 1]`: `hprior train --task
+`python -m benchmarks.compile_level [--levels 3 1 0] [--repeats 1] [--first-repeat N]`
+(`--first-repeat N` numbers the repeats from N and keeps the CSV's other rows): `hprior train --task
 cheetah_run --algo pebble --preset reduced` on one seed for 12000 steps (5000 random steps,
 evaluations at 5000 and 10000, the first feedback round at 10000), once per level with
 `XLA_FLAGS=... --xla_backend_optimization_level=N` and an empty compilation cache ("default":
@@ -17,7 +18,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from benchmarks._timing import write_rows
+from benchmarks._timing import read_rows, write_rows
 from benchmarks.end_to_end import one_run
 
 OUT = Path(__file__).parent / "results" / "compile_level.csv"
@@ -38,13 +39,18 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--levels", nargs="+", default=["default", "1", "0"])
     p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--first-repeat", type=int, default=0,
+                   help="number the repeats from here, keeping the CSV's other rows")
     p.add_argument("--preset", default="reduced", choices=["smoke", "reduced"])
     p.add_argument("--steps", type=int, default=12_000)
     p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     rows = []
+    # rows of other repeats stay (`--first-repeat`: more repeats of an earlier run)
+    keep = [row for row in read_rows(args.out) if int(row["repeat"]) < args.first_repeat
+            or int(row["repeat"]) >= args.first_repeat + args.repeats]
     with tempfile.TemporaryDirectory() as tmp:
-        for r in range(args.repeats):
+        for r in range(args.first_repeat, args.first_repeat + args.repeats):
             for level in args.levels:
                 name = f"level_{level}_{r}"
                 row = one_run("cheetah_run", "pebble", 1, args.preset, args.steps, Path(tmp),
@@ -54,8 +60,9 @@ def main(argv=None) -> None:
                 print(f"{name}: first env step {row['first_step_s']:.1f} s, compile waited "
                       f"{row['compile_s']:.1f} s, chunks {row['chunk_s']:.1f} s, eval "
                       f"{row['eval_s']:.1f} s, wall {row['wall_s']:.1f} s", flush=True)
-    write_rows([{k: (round(row[k], 2) if isinstance(row[k], float) else row[k]) for k in FIELDS}
-                for row in rows], args.out)
+                # after every run: a stopped benchmark keeps what it measured
+                write_rows([{k: (round(x[k], 2) if isinstance(x[k], float) else x[k])
+                             for k in FIELDS} for x in rows], args.out, keep=keep)
 
 
 if __name__ == "__main__":
