@@ -79,7 +79,8 @@ def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkey
 
 def test_rvar_fits_its_uniform_prior_on_unlabelled_segments_too(tmp_path, monkeypatch):
     """--rvar.unlabelled-segments N (the lab's rvar_unlabelled): each round's update also
-    fits the prior on N replay segments, every step credited 1/T."""
+    fits the prior on N replay segments of T steps (their credit is `rvar_alpha`'s 1/T,
+    tested in test_prior_loss; here it is traced, so only its shape is checked)."""
     import hprior_jax.methods.rvar as rvar_method
 
     pools = []

@@ -16,7 +16,7 @@ from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, PebbleSt
                                       reward_config)
 from hprior_jax.methods.prior import LAMBDA
 from hprior_jax.methods.registry import MethodSpec
-from hprior_jax.prior.loss import PairCredit, prior_term
+from hprior_jax.prior.loss import PairCredit, prior_term, rvar_alpha
 from hprior_jax.prior.unlabelled import replay_segments, rows_of_pool, unlabelled_prior_term
 
 
@@ -52,11 +52,12 @@ class UniformPrior(Extension):
 
     def reward_terms(self, rs, ms: PebbleState):
         terms = (prior_term(ms.ext.lam, self.credit(), "uniform"),)
-        num, t = self.cfg.rvar.unlabelled_segments, self.cfg.pebble.segment_len
+        num = self.cfg.rvar.unlabelled_segments
         if num:
-            obs, act = replay_segments(rs.key, rs.replay, num, segment_len=t,
+            obs, act = replay_segments(rs.key, rs.replay, num,
+                                       segment_len=self.cfg.pebble.segment_len,
                                        episode_len=self.kit.env.episode_length)
-            rows = rows_of_pool(obs, act, jnp.full(obs.shape[:2], 1.0 / t), ms.prefs.capacity)
+            rows = rows_of_pool(obs, act, rvar_alpha(obs[..., 0]), ms.prefs.capacity)
             terms += (unlabelled_prior_term(ms.ext.lam, rows,
                                             reward_cfg=reward_config(self.cfg.pebble)),)
         return terms, ms

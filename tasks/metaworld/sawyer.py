@@ -198,6 +198,12 @@ def _wrist_hull_points(model, data, g, body, k):
     return hull[chosen]
 
 
+def exact_shapes_for_c(wrist: str | int, keep_cylinders: bool) -> bool:
+    """Whether a scene keeps metaworld's shapes that only C MuJoCo collides (the wrist mesh,
+    paired cylinders against boxes)."""
+    return wrist == "mesh" or keep_cylinders
+
+
 def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
                 metaworld_invweights: bool = True,
                 keep_cylinders: bool = False) -> tuple[mujoco.MjModel, dict]:
@@ -214,6 +220,7 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     (see `_copy_invweights`); False keeps the simplified scene's own (the first ports).
     keep_cylinders: paired cylinders stay cylinders with any wrist (C MuJoCo diagnostics
     only, as with the mesh)."""
+    exact_shapes = exact_shapes_for_c(wrist, keep_cylinders)
     path = metaworld_xml_path(scene.xml)
     spec = mujoco.MjSpec.from_file(path)
     # name every geom so pairs can refer to it
@@ -355,8 +362,7 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     exact = {mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_SPHERE,
              mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER}
     for g in spec.geoms:
-        if (g.type != mujoco.mjtGeom.mjGEOM_CYLINDER or g.name not in used or wrist == "mesh"
-                or keep_cylinders):
+        if g.type != mujoco.mjtGeom.mjGEOM_CYLINDER or g.name not in used or exact_shapes:
             continue
         partners = [b if a == g.name else a for a, b in pair_names if g.name in (a, b)]
         if all(kinds[p] in exact for p in partners):
@@ -528,7 +534,7 @@ class SawyerTask(Task):
         self.mj_model.opt.iterations = solver_iterations
         self.mj_model.opt.ls_iterations = ls_iterations
         mjx_scene = self.mj_model
-        if self.wrist == "mesh" or keep_cylinders:  # shapes MJX cannot collide: its model
+        if exact_shapes_for_c(self.wrist, keep_cylinders):  # MJX cannot collide them: its model
             # (kinematics, reset) is the scene with the box wrist, same bodies, joints, sites
             mjx_scene, _ = build_scene(self.scene, arm=arm, wrist="box",
                                        metaworld_invweights=metaworld_invweights)
