@@ -1,12 +1,14 @@
 """Start-up with and without compiling ahead: the first env step, compile waits, wall time.
 
-`python -m benchmarks.compile_ahead [--repeats 2]`: `hprior train --task cheetah_run --algo
-pebble --preset reduced` on one seed for 12000 steps (5000 random steps, evaluations at 5000
-and 10000, the first feedback round at 10000). Per repeat: `--no-compile-ahead` (before:
-every phase in one chunk program, later programs compiled when first needed) and the
-default (after: the same chunk program, everything else compiled in a background thread in
-the order the run needs it), each with a fresh persistent compilation cache (cold), then both again
-on their now-filled caches (warm). Writes benchmarks/results/compile_ahead.csv: seconds from
+`python -m benchmarks.compile_ahead [--repeats 2] [--modes off at-start after-first]
+[--out CSV]`: `hprior train --task cheetah_run --algo pebble --preset reduced` on one seed for
+12000 steps (5000 random steps, evaluations at 5000 and 10000, the first feedback round at
+10000). Per repeat, one run per `--compile-ahead` mode: `off` (every later program compiled
+when first needed), `at-start` (everything after the first chunk's program compiled in a
+background thread from the start, in the order the run needs it) and `after-first` (the
+same queue, started once the main thread has compiled the first chunk's program), each
+with a fresh persistent compilation cache (cold), then all again on their now-filled
+caches (warm). Writes benchmarks/results/compile_ahead.csv: seconds from
 process start to the first env step (perf/first_step_s), wall seconds of the whole run
 (process start to exit), the compile seconds the main thread spent or waited for
 (perf/compile_s), and the parts' seconds.
@@ -27,15 +29,19 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--steps", type=int, default=12_000)
+    p.add_argument("--modes", nargs="+", default=["off", "at-start", "after-first"],
+                   choices=["off", "at-start", "after-first"])
+    p.add_argument("--out", type=Path, default=OUT)
     args = p.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):
             for cache in ("cold", "warm"):
-                for mode, extra in (("inline", ("--no-compile-ahead",)), ("ahead", ())):
+                for mode in args.modes:
                     name = f"{mode}_{r}_{cache}"
                     row = one_run("cheetah_run", "pebble", 1, "reduced", args.steps, Path(tmp),
-                                  extra_args=extra, name=name, cache=f"{mode}_{r}")
+                                  extra_args=("--compile-ahead", mode), name=name,
+                                  cache=f"{mode}_{r}")
                     row.update(mode=mode, cache=cache, repeat=r)
                     rows.append(row)
                     print(f"{name}: first env step {row['first_step_s']:.1f} s, wall "
@@ -43,13 +49,13 @@ def main(argv=None) -> None:
                           flush=True)
     keys = ["mode", "cache", "repeat", "first_step_s", "wall_s", "compile_s", "chunk_s",
             "eval_s", "event_s", "env_steps_per_s"]
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    with open(OUT, "w", newline="") as f:
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore", lineterminator="\n")
         w.writeheader()
         w.writerows({k: (round(v, 2) if isinstance(v, float) else v) for k, v in row.items()}
                     for row in rows)
-    print(f"wrote {OUT}")
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

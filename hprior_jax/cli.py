@@ -47,6 +47,8 @@ def _train(argv: list[str]) -> int:
         pre.add_argument(name, default=None)
     pre.add_argument("--no-progress", action="store_true")
     pre.add_argument("--no-compile-ahead", action="store_true")
+    pre.add_argument("--compile-ahead", default="after-first",
+                     choices=["after-first", "at-start", "off"])
     pre.add_argument("--devices", type=int, default=None)
     for name, kind in LABEL_OPTIONS.items():
         pre.add_argument(name, type=kind, default=None)
@@ -101,7 +103,8 @@ def _train(argv: list[str]) -> int:
     try:
         host.run(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
                  saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known),
-                 compile_ahead=not known.no_compile_ahead)
+                 compile_ahead="off" if known.no_compile_ahead
+                 else known.compile_ahead.replace("-", "_"))
     except host.Interrupted as e:
         print(f"\n{e}. Continue with:\n  hprior train --resume {run_dir}", file=sys.stderr,
               flush=True)
@@ -147,9 +150,11 @@ def _train_description(algo: str) -> str:
             "prints the address and waits); --label-host H, --label-port P (default "
             "127.0.0.1:8765; another host needs --label-token, made up if not given), "
             "--label-timeout S (stop with a checkpoint after S seconds without an answer; "
-            "default 3600). --no-compile-ahead: compile each later program (evaluation, "
-            "feedback rounds, ...) when first needed instead of in a background thread from "
-            "the start (on one core the background compile competes with training).")
+            "default 3600). --compile-ahead after-first|at-start|off: when to start compiling "
+            "the later programs (evaluation, feedback rounds, ...) in a background thread: "
+            "once the first chunk's program is compiled (default), before it, or never (each "
+            "when first needed; for a one-core machine, where the background compile competes "
+            "with training); --no-compile-ahead is --compile-ahead off.")
 
 
 # `hprior train` options of the labelling page a human teacher's run serves (not config:
@@ -174,7 +179,8 @@ def _tyro_args(argv: list[str]) -> list[str]:
     """argv less the options the pre-parser owns (tyro knows --task/--algo/--preset as
     config fields, but not these)."""
     out = [a for a in argv if a not in ("--no-progress", "--no-compile-ahead")]
-    for name in ("--teacher", "--resume", "--eval-budget", "--devices", *LABEL_OPTIONS):
+    for name in ("--teacher", "--resume", "--eval-budget", "--devices", "--compile-ahead",
+                 *LABEL_OPTIONS):
         out = _drop_option(out, name)
     return out
 

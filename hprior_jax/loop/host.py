@@ -41,10 +41,13 @@ class Interrupted(Exception):
         self.run_dir, self.step = run_dir, step
 
 
+AHEAD_WHEN = ("after_first", "at_start", "off")
+
+
 def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         max_chunks: int | None = None, saved_capacity: int | None = None,
         engine: Engine | None = None, interrupt: "StopRequest | None" = None,
-        labelling=None, compile_ahead: bool = True) -> RunState:
+        labelling=None, compile_ahead: str = "after_first") -> RunState:
     """Trains `cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to resume).
 
     `max_chunks` stops early after that many chunks (used by tests to simulate an
@@ -55,8 +58,11 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     train side by side in threads (the grid's), which the main thread's Ctrl-C sets.
     `labelling`: where and how long a method that asks a person waits for answers
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
-    `compile_ahead`: compile the later programs (evaluation, the method's events, other
-    chunk lengths) in a background thread from the start (`Engine.compile_run_ahead`).
+    `compile_ahead`: when to start compiling the later programs (evaluation, the method's
+    events, other chunk lengths) in a background thread (`Engine.compile_run_ahead`):
+    "after_first" (default) once the main thread has compiled the first chunk's program,
+    "at_start" before it (the two compiles then share the cores and the first env step
+    comes later), "off" (each program when first needed).
     Each chunk's perf records hold its wall time by part; the first chunk's also
     `perf/first_step_s` (process start to its first env step).
 
@@ -98,8 +104,12 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     interrupt = interrupt or StopRequest()
     try:
         engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
-        if compile_ahead and max_chunks is None:  # a run cut short (tests) would compile
-            engine.compile_run_ahead(rs, step)    # programs it never runs
+        if compile_ahead not in AHEAD_WHEN:
+            raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
+        # a run cut short (tests) would compile programs it never runs
+        ahead = compile_ahead if max_chunks is None else "off"
+        if ahead == "at_start":
+            engine.compile_run_ahead(rs, step)
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
             compiled_before = set(engine.compile_seconds)
             timer = _WallTimer(engine.compile_seconds)  # wall time per part, compiles apart
@@ -121,6 +131,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             with timer("chunk_s"):  # env steps and agent updates: one fused program
                 program = engine.compiled_chunk(rs, step, length)
                 first_step = process_age() if chunks == 0 else None
+                if chunks == 0 and ahead == "after_first":  # queued before the chunk runs:
+                    engine.compile_run_ahead(rs, step)      # its arguments are donated to it
                 rs, metrics = program(rs, np.int32(step))
                 metrics = devices.fetch(metrics)
             keep = engine.phase_metrics(phase)  # drop placeholders of other phases
