@@ -48,7 +48,7 @@ def _train(argv: list[str]) -> int:
     pre.add_argument("--no-progress", action="store_true")
     pre.add_argument("--no-compile-ahead", action="store_true")
     pre.add_argument("--compile-ahead", default="after-first",
-                     choices=["after-first", "at-start", "off"])
+                     choices=["after-first", "first-phase-apart", "at-start", "off"])
     pre.add_argument("--devices", type=int, default=None)
     for name, kind in LABEL_OPTIONS.items():
         pre.add_argument(name, type=kind, default=None)
@@ -150,11 +150,13 @@ def _train_description(algo: str) -> str:
             "prints the address and waits); --label-host H, --label-port P (default "
             "127.0.0.1:8765; another host needs --label-token, made up if not given), "
             "--label-timeout S (stop with a checkpoint after S seconds without an answer; "
-            "default 3600). --compile-ahead after-first|at-start|off: when to start compiling "
-            "the later programs (evaluation, feedback rounds, ...) in a background thread: "
-            "once the first chunk's program is compiled (default), before it, or never (each "
-            "when first needed; for a one-core machine, where the background compile competes "
-            "with training); --no-compile-ahead is --compile-ahead off.")
+            "default 3600). --compile-ahead after-first|first-phase-apart|at-start|off: when to "
+            "start compiling the later programs (evaluation, feedback rounds, ...) in a "
+            "background thread: once the first chunk's program is compiled (default); the "
+            "same with the random phase's chunks run by a program of their own, quicker to "
+            "compile (first-phase-apart); before the first chunk's compile (at-start); or "
+            "never (each when first needed; for a one-core machine, where the background "
+            "compile competes with training); --no-compile-ahead is --compile-ahead off.")
 
 
 # `hprior train` options of the labelling page a human teacher's run serves (not config:

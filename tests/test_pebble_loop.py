@@ -133,6 +133,28 @@ def test_exported_reward_is_the_runs_learned_reward(toy_runs, tmp_path):
     assert (meta["algo"], meta["seed"], meta["step"]) == ("pebble", 7, cfg.steps)
 
 
+def test_a_chunk_of_the_first_phase_runs_the_same_in_its_own_program(tmp_path):
+    """The random phase's own program (no switch over the phases, so it compiles sooner and
+    the run starts while the full program compiles) gives the state and metrics of the
+    full program's random branch, bit for bit."""
+    cfg = _cfg(tmp_path, "x", seeds=(7, 8))
+    engine = Engine(cfg)
+    assert engine._chunk_name(0, 20) == "chunk/20"  # one program unless asked
+    engine.first_phase_apart = True
+    assert engine._chunk_name(0, 20) == "chunk/20/random"
+    assert engine._chunk_name(20, 20) == "chunk/20"
+    rs = engine.init_seeds(cfg.seeds)
+    runs = {}
+    for name in ("chunk/20/random", "chunk/20"):
+        fn, state, step0 = engine._chunk_program(rs, 0, 20, name)
+        copy = jax.tree.map(lambda x: x.copy(), state)  # the program donates its state
+        runs[name] = jax.device_get(fn(copy, step0))
+    leaves = lambda name: jax.tree.leaves(runs[name])
+    assert len(leaves("chunk/20/random")) == len(leaves("chunk/20"))
+    for a, b in zip(leaves("chunk/20/random"), leaves("chunk/20")):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
     """At the start of a run the engine queues the compile of evaluation, the feedback rounds
     and the other chunk lengths on a background thread; a run whose programs all came from
@@ -158,3 +180,23 @@ def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
     assert (tmp_path / "ahead" / "eval.csv").read_text() == (tmp_path / "inline" / "eval.csv").read_text()
     rounds = lambda run: [r for r in _records(tmp_path / run) if "reward/true_corr" in r]
     assert rounds("ahead") == rounds("inline") and len(rounds("ahead")) == 2
+
+
+@pytest.mark.parametrize("when", ["after_first", "first_phase_apart", "at_start"])
+def test_background_compiles_start_when_asked(tmp_path, when):
+    """By default the background queue starts once the main thread has compiled the first
+    chunk's program (the two compiles would share the cores and delay the first env step);
+    `first_phase_apart` the same after the random phase's own program; `at_start` before."""
+    cfg = _cfg(tmp_path, when, seeds=(7,), steps=60, eval_every=60)
+    engine = Engine(cfg)
+    compiled_then = []
+    queue = engine.compile_run_ahead
+    engine.compile_run_ahead = lambda rs, step: (compiled_then.append(set(engine._compiled)),
+                                                 queue(rs, step))
+    host.run(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
+    first = {"after_first": {"chunk/20"}, "first_phase_apart": {"chunk/20/random"},
+             "at_start": set()}[when]
+    assert compiled_then == [first]
+    assert "eval" in engine.ahead_seconds
+    if when == "first_phase_apart":  # the full program came from the background
+        assert "chunk/20" in engine.ahead_seconds

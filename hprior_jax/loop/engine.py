@@ -45,6 +45,7 @@ class Engine:
         self.ahead_seconds: dict[str, float] = {}  # compile time spent ahead, in the background
         self._ahead: ThreadPoolExecutor | None = None
         self._pending: dict[str, Future] = {}
+        self.first_phase_apart = False  # see _chunk_name; the host sets it
         self.person = None  # a human teacher, attached by the host loop when one is asked
         self.method = registry.get(cfg.algo).build(cfg, self)
         self.records_physics = records_physics or self.method.asks_person
@@ -95,13 +96,11 @@ class Engine:
             return None
         return {k: v[0] for k, v in self.task.render_state(env_state.task.data).items()}
 
-    def chunk(self, rs: RunState, step0: jax.Array, *, length: int):
+    def chunk(self, rs: RunState, step0: jax.Array, *, length: int, only: int | None = None):
         """`length` env steps from global step `step0`. A chunk never crosses a phase change,
         so the phase is an unbatched `lax.switch` index: a real branch under vmap, and one
-        compiled program for every phase. (A program of the random phase alone, to start
-        stepping while the full one compiles, was measured and not kept: on cheetah_run it
-        compiled in 36 s beside the background compiles, and the first env step came later,
-        59.7 s against 52.5 s cold; `compile_ahead_first_phase_apart.csv`.)"""
+        compiled program for every phase. `only`: the program of that phase alone (no
+        switch), for chunks the host knows to be in it (`_chunk_name`)."""
         phase = jnp.asarray(self._phase_index(step0), jnp.int32)
         metric_keys = sorted({k for p in self.phases for k in p.metrics})
 
@@ -123,8 +122,9 @@ class Engine:
             step = step0 + i
             key, k_act, k_sample, k_update, k_reset = jax.random.split(rs.key, 5)
             obs = rs.env.task.obs[0]
-            action, rest, write_at, metrics = jax.lax.switch(
-                phase, branches, rs, obs, step, (k_act, k_sample, k_update))
+            args = (rs, obs, step, (k_act, k_sample, k_update))
+            action, rest, write_at, metrics = (jax.lax.switch(phase, branches, *args)
+                                               if only is None else branches[only](*args))
             rs = rest.replace(replay=rs.replay)
             env_state, tr = self.env.step(rs.env, action[None], step, k_reset)
             reward = self.method.stored_reward(rs, tr.obs[0], tr.action[0], tr.true_reward[0])
@@ -190,7 +190,7 @@ class Engine:
                 programs = {name: (fn, args) for name, fn, args in self.method.programs(rs)}
                 order += list(programs)
             length = self.chunk_plan(at)[1]
-            order.append(f"chunk/{length}")
+            order.append(self._chunk_name(at, length))
             at += length
             if at % cfg.eval_every == 0 or at == cfg.steps:
                 order.append("eval")
@@ -204,7 +204,7 @@ class Engine:
                 self.compile_ahead(name, programs[name][0], *programs[name][1])
             else:
                 length = int(name.split("/")[1])
-                self.compile_ahead(name, *self._chunk_program(rs, step, length))
+                self.compile_ahead(name, *self._chunk_program(rs, step, length, name))
 
     def close(self) -> None:
         """Drops the background compiles not started (one in progress finishes)."""
@@ -230,11 +230,25 @@ class Engine:
         return self.per_seed(partial(self.init, capacity=capacity))(self.place(keys))
 
     def compiled_chunk(self, rs: RunState, step0: int, length: int):
-        """The compiled program of `length` env steps (one per length, every phase)."""
-        return self.compile(f"chunk/{length}", *self._chunk_program(rs, step0, length))
+        """The compiled program of `length` env steps from `step0`: one per length for every
+        phase, except in the first phase with `first_phase_apart` (`_chunk_name`)."""
+        name = self._chunk_name(step0, length)
+        return self.compile(name, *self._chunk_program(rs, step0, length, name))
 
-    def _chunk_program(self, rs: RunState, step0: int, length: int):
-        fn = self.per_seed(partial(self.chunk, length=length), (0, None), donate_argnums=0)
+    def _chunk_name(self, step0: int, length: int) -> str:
+        """With `first_phase_apart`, chunks of the first phase (random actions: no network
+        update) run a program of that phase alone, which compiles in a fraction of the full
+        program's time, so the run's first env steps need not wait for the program of every
+        phase; that one compiles in the background meanwhile. Both compute the same bits
+        (tested). Without a background compile the split would only add a compile."""
+        first = (self.first_phase_apart and self._phase_index(step0) == 0
+                 and len(self.phases) > 1)
+        return f"chunk/{length}/{self.phases[0].name}" if first else f"chunk/{length}"
+
+    def _chunk_program(self, rs: RunState, step0: int, length: int, name: str | None = None):
+        only = 0 if name is not None and name.count("/") == 2 else None
+        fn = self.per_seed(partial(self.chunk, length=length, only=only), (0, None),
+                           donate_argnums=0)
         return fn, rs, np.int32(step0)
 
     def run_chunk(self, rs: RunState, step0: int, length: int):

@@ -41,7 +41,7 @@ class Interrupted(Exception):
         self.run_dir, self.step = run_dir, step
 
 
-AHEAD_WHEN = ("after_first", "at_start", "off")
+AHEAD_WHEN = ("after_first", "first_phase_apart", "at_start", "off")
 
 
 def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
@@ -60,9 +60,11 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
     `compile_ahead`: when to start compiling the later programs (evaluation, the method's
     events, other chunk lengths) in a background thread (`Engine.compile_run_ahead`):
-    "after_first" (default) once the main thread has compiled the first chunk's program,
-    "at_start" before it (the two compiles then share the cores and the first env step
-    comes later), "off" (each program when first needed).
+    "after_first" (default) once the main thread has compiled the first chunk's program;
+    "first_phase_apart" the same, but the first phase's chunks (random actions) run a
+    program of that phase alone, quicker to compile (`Engine._chunk_name`); "at_start"
+    before the first chunk's compile (the two compiles then share the cores and the first
+    env step comes later); "off" (each program when first needed).
     Each chunk's perf records hold its wall time by part; the first chunk's also
     `perf/first_step_s` (process start to its first env step).
 
@@ -108,6 +110,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
         # a run cut short (tests) would compile programs it never runs
         ahead = compile_ahead if max_chunks is None else "off"
+        engine.first_phase_apart = ahead == "first_phase_apart"
         if ahead == "at_start":
             engine.compile_run_ahead(rs, step)
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
@@ -131,8 +134,9 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             with timer("chunk_s"):  # env steps and agent updates: one fused program
                 program = engine.compiled_chunk(rs, step, length)
                 first_step = process_age() if chunks == 0 else None
-                if chunks == 0 and ahead == "after_first":  # queued before the chunk runs:
-                    engine.compile_run_ahead(rs, step)      # its arguments are donated to it
+                if chunks == 0 and ahead in ("after_first", "first_phase_apart"):  # queued
+                    # before the chunk runs: its arguments are donated to it
+                    engine.compile_run_ahead(rs, step)
                 rs, metrics = program(rs, np.int32(step))
                 metrics = devices.fetch(metrics)
             keep = engine.phase_metrics(phase)  # drop placeholders of other phases
