@@ -134,9 +134,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             with timer("chunk_s"):  # env steps and agent updates: one fused program
                 program = engine.compiled_chunk(rs, step, length)
                 first_step = process_age() if chunks == 0 else None
-                if chunks == 0 and ahead in ("after_first", "first_phase_apart"):  # queued
-                    # before the chunk runs: its arguments are donated to it
-                    engine.compile_run_ahead(rs, step)
+                if chunks == 0 and ahead in ("after_first", "first_phase_apart"):
+                    engine.compile_run_ahead(rs, step)  # before the chunk: it donates rs
                 rs, metrics = program(rs, np.int32(step))
                 metrics = devices.fetch(metrics)
             keep = engine.phase_metrics(phase)  # drop placeholders of other phases
