@@ -197,7 +197,7 @@ class Engine:
         first = order[0] if order else None
         for name in dict.fromkeys(order):  # first need of each, in order
             if name == first:
-                continue  # the main thread compiles it now
+                continue  # the main thread's: compiled before or after this call
             if name == "eval":
                 self.compile_ahead(name, *self._eval_program(rs, cfg.seeds, step))
             elif name in (programs or {}):
@@ -239,9 +239,9 @@ class Engine:
         """With `first_phase_apart`, chunks of the first phase (random actions: no network
         update) run a program of that phase alone, smaller to compile, so the run's first env
         steps need not wait for the program of every phase, which compiles in the background
-        meanwhile (cheetah_run, reduced PEBBLE, cold: first env step 64 s against 82 s, but the
-        run ended 26 s later; a flag, `--compile-ahead first-phase-apart`). Both compute the same bits
-        (tested). Without a background compile the split would only add a compile."""
+        meanwhile (cheetah_run, reduced PEBBLE, cold: first env step 64 s against 82 s, but
+        the run ended 26 s later; a flag, `--compile-ahead first-phase-apart`). Both compute
+        the same bits (tested). Without a background compile the split would only add one."""
         first = (self.first_phase_apart and self._phase_index(step0) == 0
                  and len(self.phases) > 1)
         return f"chunk/{length}/{self.phases[0].name}" if first else f"chunk/{length}"
