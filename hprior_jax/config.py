@@ -57,6 +57,12 @@ class RunConfig:
     under the mocap weld; the scene that moves like metaworld's, see tasks/metaworld/sawyer.py),
     `free` the free-floating hand of the first ports. Runs written before this option restore
     with `free`, the scene they were trained on."""
+    compile_level: Literal["task", "xla", "0", "1", "2", "3"] = "task"
+    """XLA's backend optimisation level for the run's programs: `task` the task's
+    (`tasks.TaskInfo.compile_level`: 1 where it measured a sooner first env step at the same
+    step speed, XLA's own elsewhere; a level in XLA_FLAGS wins), `xla` XLA's own (or
+    XLA_FLAGS'), or a level. Levels round differently, so the same seed gives other episodes
+    at another level. Runs written before this option restore with `xla`."""
     sac: SACConfig = field(default_factory=SACConfig)
 
     def __post_init__(self):
@@ -79,6 +85,8 @@ class RunConfig:
             raise ValueError(f"--contacts {self.contacts!r}: floor or all")
         if self.hand not in ("arm", "free"):
             raise ValueError(f"--hand {self.hand!r}: arm or free")
+        if self.compile_level not in ("task", "xla", "0", "1", "2", "3"):
+            raise ValueError(f"--compile-level {self.compile_level!r}: task, xla or 0-3")
         if self.replay_capacity < 0:
             raise ValueError("--replay-capacity must be >= 0 (0 means --steps)")
         if self.sac.batch_size > self.steps:
@@ -100,6 +108,7 @@ class RunConfig:
         domain = envs.task_info(d["task"]).domain if "task" in d else None
         for name, option in envs.PHYSICS_OPTIONS.items():
             d.setdefault(name, option.before if domain == option.domain else option.default)
+        d.setdefault("compile_level", "xla")  # what runs before the option compiled at
         return _dataclass_from_dict(config_class(d.get("algo", registry.DEFAULT)), d)
 
 

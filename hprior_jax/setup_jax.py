@@ -20,3 +20,20 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECS)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return cache
+
+
+LEVEL_OPTION = "xla_backend_optimization_level"
+
+
+def compiler_options(compile_level: str, task_level: int | None) -> dict:
+    """XLA options of a run's programs for `--compile-level` (RunConfig.compile_level):
+    "task" the task's level (`tasks.TaskInfo.compile_level`) unless XLA_FLAGS names one (the
+    test suite's -O0, a user's choice), "xla" none (XLA's own level or XLA_FLAGS'), "0"-"3"
+    that level whatever XLA_FLAGS says."""
+    if compile_level == "xla":
+        return {}
+    if compile_level == "task":
+        if task_level is None or LEVEL_OPTION in os.environ.get("XLA_FLAGS", ""):
+            return {}
+        return {LEVEL_OPTION: task_level}
+    return {LEVEL_OPTION: int(compile_level)}

@@ -24,6 +24,9 @@ class TaskInfo(NamedTuple):
     domain: str  # "dm_control" or "metaworld"
     episode_length: int
     has_success: bool
+    # XLA's backend optimisation level a run of the task compiles at unless told otherwise
+    # (`hprior train --compile-level`); None: XLA's own
+    compile_level: int | None = None
 
 
 def register(name: str, factory: Callable[[], Task], info: TaskInfo | None = None) -> None:
@@ -73,11 +76,17 @@ def _lazy(module: str, cls: str) -> Callable[..., Task]:
     return factory
 
 
+# XLA level 1 instead of XLA's own (3), per task where measured: reduced PEBBLE on cheetah_run
+# reached its first env step 8-30 s sooner in 3 of 3 cold starts, chunks at the same speed
+# (benchmarks/results/compile_level.csv); MetaWorld's steps ran 2-29% slower at level 1
+_DMC_LEVELS = {"cheetah_run": 1}
+
 # DM Control ports (tasks/dm_control/): 1000 control steps each (a test checks the built tasks)
 for _name, _module, _cls in (("cheetah_run", "cheetah", "CheetahRun"),
                              ("walker_walk", "walker", "WalkerWalk"),
                              ("quadruped_walk", "quadruped", "QuadrupedWalk")):
-    register(_name, _lazy(f"dm_control.{_module}", _cls), TaskInfo("dm_control", 1000, False))
+    register(_name, _lazy(f"dm_control.{_module}", _cls),
+             TaskInfo("dm_control", 1000, False, _DMC_LEVELS.get(_name)))
 
 # MetaWorld v3 ports (tasks/metaworld/): max_path_length 500
 for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress"),

@@ -96,10 +96,11 @@ def seed_mesh(num_seeds: int, devices=None) -> Mesh:
     return Mesh(np.array(available[:n]), (SEEDS,))
 
 
-def over_seeds(mesh: Mesh, fn, in_axes, donate_argnums=()):
+def over_seeds(mesh: Mesh, fn, in_axes, donate_argnums=(), compiler_options=None):
     """`jit` of `fn` (which maps over a leading seed axis: a vmap or lax.map) on the mesh.
     `in_axes[i]` is 0 for an argument with the seed axis (split over devices), None for one
-    every seed shares (replicated). Every output has the seed axis."""
+    every seed shares (replicated). Every output has the seed axis. `compiler_options`:
+    XLA's, for every compile of the program (called or lowered)."""
     split, shared = NamedSharding(mesh, P(SEEDS)), NamedSharding(mesh, P())
     # no collective inside, so the replication (vma) types that check them are not needed;
     # they would reject a scan whose carry starts shared (e.g. zeros) and ends per seed
@@ -107,7 +108,8 @@ def over_seeds(mesh: Mesh, fn, in_axes, donate_argnums=()):
                                                          for a in in_axes),
                           out_specs=P(SEEDS), check_vma=False)
     return jax.jit(local, in_shardings=tuple(split if a == 0 else shared for a in in_axes),
-                   out_shardings=split, donate_argnums=donate_argnums)
+                   out_shardings=split, donate_argnums=donate_argnums,
+                   compiler_options=compiler_options or None)
 
 
 def place(mesh: Mesh, tree):

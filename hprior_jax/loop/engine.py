@@ -20,11 +20,12 @@ import numpy as np
 
 from hprior_jax.agents.sac import SAC
 from hprior_jax.buffers import replay
-from hprior_jax.envs import make_env, task_options
+from hprior_jax.envs import make_env, task_info, task_options
 from hprior_jax.evaluate import evaluate_policy
 from hprior_jax.loop import devices as seed_devices
 from hprior_jax.loop.state import RunState
 from hprior_jax.methods import registry
+from hprior_jax.setup_jax import compiler_options
 
 
 class Engine:
@@ -40,6 +41,9 @@ class Engine:
         self.eval_env = make_env(cfg.task, num_envs=cfg.num_eval_episodes, **options)
         self.task = self.env.task
         self.sac = SAC(self.env.obs_size, self.env.action_size, cfg.sac)
+        # every program of the run compiles with these (XLA's optimisation level)
+        self.compiler_options = compiler_options(cfg.compile_level,
+                                                 task_info(cfg.task).compile_level)
         self._compiled: dict = {}
         self.compile_seconds: dict[str, float] = {}  # the wall time a program cost the run
         self.ahead_seconds: dict[str, float] = {}  # compile time spent ahead, in the background
@@ -219,7 +223,8 @@ class Engine:
 
     def over_seed_axis(self, fn, in_axes=(0,), donate_argnums=()):
         """As `per_seed` for `fn` that maps over the seed axis itself (e.g. `lax.map`)."""
-        return seed_devices.over_seeds(self.mesh, fn, in_axes, donate_argnums)
+        return seed_devices.over_seeds(self.mesh, fn, in_axes, donate_argnums,
+                                       self.compiler_options)
 
     def place(self, tree):
         """`tree` (leading seed axis) split over the mesh as the compiled programs expect."""

@@ -1,0 +1,52 @@
+"""`--compile-level`: which XLA optimisation level a run's programs compile at."""
+import jax
+import pytest
+
+import tasks
+from hprior_jax import presets
+from hprior_jax.agents.sac import SACConfig
+from hprior_jax.config import RunConfig
+from hprior_jax.loop.engine import Engine
+from hprior_jax.setup_jax import LEVEL_OPTION, compiler_options
+
+
+def test_the_level_follows_the_flag_the_task_and_xla_flags(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    assert compiler_options("task", 1) == {LEVEL_OPTION: 1}
+    assert compiler_options("task", None) == {}
+    assert compiler_options("xla", 1) == {}
+    assert compiler_options("2", None) == {LEVEL_OPTION: 2}
+    # a level in XLA_FLAGS (the suite's -O0, a user's choice) wins over the task's only
+    monkeypatch.setenv("XLA_FLAGS", f"--{LEVEL_OPTION}=0")
+    assert compiler_options("task", 1) == {}
+    assert compiler_options("3", 1) == {LEVEL_OPTION: 3}
+
+
+def test_the_dm_control_level_is_measured_per_task_and_metaworld_keeps_xlas():
+    assert tasks.info("cheetah_run").compile_level == 1
+    assert all(tasks.info(t).compile_level is None for t in tasks.names()
+               if tasks.info(t).domain == "metaworld")
+
+
+def test_runs_written_before_the_option_restore_with_xlas_level():
+    old = {k: v for k, v in RunConfig(task="cheetah_run").__dict__.items()
+           if k not in ("compile_level", "sac")}
+    assert RunConfig.from_dict(old).compile_level == "xla"
+    assert RunConfig().compile_level == "task"
+    with pytest.raises(ValueError, match="--compile-level"):
+        RunConfig(compile_level="4")
+
+
+def test_every_program_of_the_run_compiles_with_the_options(tmp_path):
+    cfg = presets.train_preset("toy_point", "sac", "smoke", out=str(tmp_path / "r"),
+                               compile_level="0", num_eval_episodes=2,
+                               sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8))
+    engine = Engine(cfg)
+    assert engine.compiler_options == {LEVEL_OPTION: 0}
+    rs = engine.init_seeds(cfg.seeds)
+    # an option XLA does not know fails the compile: the options reach it
+    engine.compiler_options = {"xla_no_such_option": 1}
+    with pytest.raises(jax.errors.JaxRuntimeError, match="xla_no_such_option"):
+        engine.run_chunk(rs, 0, 10)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="xla_no_such_option"):
+        engine.run_eval(rs, cfg.seeds, 0)
