@@ -4,10 +4,10 @@
 [--first-repeat N]` (`--first-repeat N` numbers the repeats from N and keeps the CSV's other
 rows of the task): `hprior train --task T --algo pebble --preset reduced` (default cheetah_run)
 on one seed for 12000 steps (5000 random steps, evaluations at 5000 and 10000, the first
-feedback round at 10000), once per level with `--compile-level N` and an empty compilation cache
-("default": `--compile-level xla`, XLA's own level, the reference run of the same script). The test suite compiles at
--O0 (tests/xla_opt.py), where compiling is about half as long; this measures what a level
-costs a run: seconds to the first env step, compile seconds the main thread waited for, the
+feedback round at 10000), once per level with `--compile-level N` and an empty compilation
+cache ("default": `--compile-level xla`, XLA's own level, the reference run of the same
+script). The test suite compiles at -O0 (tests/xla_opt.py), where compiling is about half as
+long; this measures what a level costs a run: seconds to the first env step, compile seconds the main thread waited for, the
 env + SAC chunks and the evaluation (run speed), and the whole wall. Writes
 benchmarks/results/compile_level.csv.
 """

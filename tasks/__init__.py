@@ -76,10 +76,12 @@ def _lazy(module: str, cls: str) -> Callable[..., Task]:
     return factory
 
 
-# XLA level 1 instead of XLA's own (3), per task where measured: reduced PEBBLE on cheetah_run
-# reached its first env step 8-30 s sooner in 3 of 3 cold starts, chunks at the same speed
-# (benchmarks/results/compile_level.csv); MetaWorld's steps ran 2-29% slower at level 1
-_DMC_LEVELS = {"cheetah_run": 1}
+# XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/results/
+# compile_level.csv, reduced PEBBLE, 12000 steps, cold): cheetah_run's first env step 8-30 s
+# sooner in 3 of 3 pairs, chunks at the same speed; quadruped_walk (1 pair) 15 s sooner and
+# the whole run 93 s shorter. Not walker_walk (1 pair: 4 s sooner, evaluation 27% slower,
+# wall -3 s) nor MetaWorld (steps 2-29% slower at level 1).
+_DMC_LEVELS = {"cheetah_run": 1, "quadruped_walk": 1}
 
 # DM Control ports (tasks/dm_control/): 1000 control steps each (a test checks the built tasks)
 for _name, _module, _cls in (("cheetah_run", "cheetah", "CheetahRun"),

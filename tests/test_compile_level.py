@@ -22,8 +22,9 @@ def test_the_level_follows_the_flag_the_task_and_xla_flags(monkeypatch):
     assert compiler_options("3", 1) == {LEVEL_OPTION: 3}
 
 
-def test_the_dm_control_level_is_measured_per_task_and_metaworld_keeps_xlas():
-    assert tasks.info("cheetah_run").compile_level == 1
+def test_the_level_is_set_only_where_it_was_measured_faster():
+    assert [tasks.info(t).compile_level for t in ("cheetah_run", "quadruped_walk")] == [1, 1]
+    assert tasks.info("walker_walk").compile_level is None
     assert all(tasks.info(t).compile_level is None for t in tasks.names()
                if tasks.info(t).domain == "metaworld")
 

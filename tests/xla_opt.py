@@ -11,9 +11,9 @@ import os
 
 FLAG = "--xla_backend_optimization_level=0"
 # jax.jit(..., compiler_options=AS_RUNS): XLA's default level, whatever XLA_FLAGS says. Runs
-# of a task with its own level (`--compile-level task`: cheetah_run 1) compile at that one;
-# the tests that use AS_RUNS passed with level 1 here too (2026-12-04, test_prior_loss and
-# test_world_model)
+# of a task with its own level (`--compile-level task`: 1 on cheetah_run and quadruped_walk)
+# compile at that one; the tests that use AS_RUNS passed with level 1 here too (2026-12-04,
+# test_prior_loss and test_world_model)
 AS_RUNS = {"xla_backend_optimization_level": 3}
 
 if os.environ.get("HPRIOR_TESTS_OPTIMIZED") != "1" and \
