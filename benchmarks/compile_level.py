@@ -7,9 +7,9 @@ on one seed for 12000 steps (5000 random steps, evaluations at 5000 and 10000, t
 feedback round at 10000), once per level with `--compile-level N` and an empty compilation
 cache ("default": `--compile-level xla`, XLA's own level, the reference run of the same
 script). The test suite compiles at -O0 (tests/xla_opt.py), where compiling is about half as
-long; this measures what a level costs a run: seconds to the first env step, compile seconds the main thread waited for, the
-env + SAC chunks and the evaluation (run speed), and the whole wall. Writes
-benchmarks/results/compile_level.csv.
+long; this measures what a level costs a run: seconds to the first env step, compile seconds
+the main thread waited for, the env + SAC chunks and the evaluation (run speed), and the
+whole wall. Writes benchmarks/results/compile_level.csv.
 """
 from __future__ import annotations
 
@@ -22,8 +22,8 @@ from benchmarks._timing import read_rows, write_rows
 from benchmarks.end_to_end import one_run
 
 OUT = Path(__file__).parent / "results" / "compile_level.csv"
-FIELDS = ["task", "level", "repeat", "first_step_s", "compile_s", "chunk_s", "eval_s", "event_s",
-          "wall_s", "env_steps_per_s", "steps"]
+FIELDS = ["task", "level", "repeat", "first_step_s", "compile_s", "chunk_s", "eval_s",
+          "event_s", "wall_s", "env_steps_per_s", "steps"]
 
 
 def without_level_flag() -> dict:

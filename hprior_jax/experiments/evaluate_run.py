@@ -65,7 +65,9 @@ def episode_states(engine, actor_params, keys: jax.Array,
         _, rest = jax.lax.scan(body, first, jnp.arange(env.episode_length))
         return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), snapshot(first), rest)
 
-    return jax.device_get(jax.jit(jax.vmap(one))(keys))
+    # at the run's XLA level: another level rounds differently and drifts from its episodes
+    return jax.device_get(jax.jit(jax.vmap(one),
+                                  compiler_options=engine.compiler_options or None)(keys))
 
 
 def _video(engine, actor_params, seed: int, step: int, run_dir: Path) -> Path:
