@@ -20,6 +20,7 @@ from pathlib import Path
 
 from benchmarks._timing import read_rows, write_rows
 from benchmarks.end_to_end import one_run
+from hprior_jax.setup_jax import LEVEL_OPTION
 
 OUT = Path(__file__).parent / "results" / "compile_level.csv"
 FIELDS = ["task", "level", "repeat", "first_step_s", "compile_s", "chunk_s", "eval_s",
@@ -29,7 +30,7 @@ FIELDS = ["task", "level", "repeat", "first_step_s", "compile_s", "chunk_s", "ev
 def without_level_flag() -> dict:
     """XLA_FLAGS of this process without a level (`--compile-level` sets the child's)."""
     flags = os.environ.get("XLA_FLAGS", "").split()
-    return {"XLA_FLAGS": " ".join(f for f in flags if "xla_backend_optimization_level" not in f)}
+    return {"XLA_FLAGS": " ".join(f for f in flags if LEVEL_OPTION not in f)}
 
 
 def main(argv=None) -> None:
