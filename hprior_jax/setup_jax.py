@@ -27,13 +27,15 @@ LEVEL_OPTION = "xla_backend_optimization_level"
 
 def compiler_options(compile_level: str, task_level: int | None) -> dict:
     """XLA options of a run's programs for `--compile-level` (RunConfig.compile_level):
-    "task" the task's level (`tasks.TaskInfo.compile_level`) unless XLA_FLAGS names one (the
-    test suite's -O0, a user's choice), "xla" none (XLA's own level or XLA_FLAGS'), "0"-"3"
+    "task" the task's level (`tasks.TaskInfo.compile_level`) on CPU unless XLA_FLAGS names one
+    (the test suite's -O0, a user's choice), "xla" none (XLA's own level or XLA_FLAGS'), "0"-"3"
     that level whatever XLA_FLAGS says."""
     if compile_level == "xla":
         return {}
     if compile_level == "task":
-        if task_level is None or LEVEL_OPTION in os.environ.get("XLA_FLAGS", ""):
+        # the tasks' levels were measured on CPU; on a GPU "task" keeps XLA's own
+        if (task_level is None or LEVEL_OPTION in os.environ.get("XLA_FLAGS", "")
+                or jax.default_backend() != "cpu"):
             return {}
         return {LEVEL_OPTION: task_level}
     return {LEVEL_OPTION: int(compile_level)}

@@ -11,6 +11,7 @@ take effect, so we warn loudly in that case.
 import os
 import sys
 import warnings
+from importlib import metadata
 
 FLAG = "--xla_cpu_use_fusion_emitters=false"
 # Single-threaded Eigen inside XLA CPU. Added while chasing a hang of 2-seed training runs
@@ -23,12 +24,25 @@ FLAG = "--xla_cpu_use_fusion_emitters=false"
 NO_EIGEN_THREADS = "--xla_cpu_multi_thread_eigen=false"
 
 
+def jaxlib_needs_fusion_flag() -> bool:
+    """Whether the installed jaxlib knows FLAG and needs it. jaxlib 0.11 removed the flag
+    (an unknown flag in XLA_FLAGS aborts the process) and the slowdown with it: on jax 0.11.2
+    without any flag, jit(mjx.kinematics) on metaworld's drawer scene takes 3.8 ms (median,
+    this 2-core CPU, 2026-12-04). The project pins 0.10.2; a GPU machine's own newer jax (its
+    CUDA build) runs the code unpinned."""
+    try:
+        major, minor = (int(x) for x in metadata.version("jaxlib").split(".")[:2])
+    except (metadata.PackageNotFoundError, ValueError):
+        return True
+    return (major, minor) < (0, 11)
+
+
 def ensure_xla_flags() -> None:
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_cpu_multi_thread_eigen" not in flags:
         flags = (flags + " " + NO_EIGEN_THREADS).strip()
         os.environ["XLA_FLAGS"] = flags
-    if "xla_cpu_use_fusion_emitters" not in flags:
+    if "xla_cpu_use_fusion_emitters" not in flags and jaxlib_needs_fusion_flag():
         if "jax" in sys.modules and "jax._src.xla_bridge" in sys.modules:
             warnings.warn(
                 "jax was imported before hprior_jax/tasks could set "

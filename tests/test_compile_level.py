@@ -1,4 +1,7 @@
 """`--compile-level`: which XLA optimisation level a run's programs compile at."""
+import os
+import warnings
+
 import jax
 import pytest
 
@@ -20,6 +23,28 @@ def test_the_level_follows_the_flag_the_task_and_xla_flags(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", f"--{LEVEL_OPTION}=0")
     assert compiler_options("task", 1) == {}
     assert compiler_options("3", 1) == {LEVEL_OPTION: 3}
+
+
+def test_the_tasks_cpu_levels_stay_off_other_backends(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert compiler_options("task", 1) == {}
+    assert compiler_options("1", 1) == {LEVEL_OPTION: 1}  # asked for, it is set anywhere
+
+
+@pytest.mark.parametrize("jaxlib, needed", [("0.10.2", True), ("0.11.2", False),
+                                            ("1.0.0", False)])
+def test_the_fusion_flag_only_for_jaxlibs_that_know_it(monkeypatch, jaxlib, needed):
+    """jaxlib 0.11 aborts on the removed flag (a GPU machine's own jax runs the suite)."""
+    from tasks import _xla_flags
+
+    monkeypatch.setattr(_xla_flags.metadata, "version", lambda name: jaxlib)
+    assert _xla_flags.jaxlib_needs_fusion_flag() is needed
+    monkeypatch.setenv("XLA_FLAGS", "")
+    with warnings.catch_warnings():  # jax is imported already: the too-late warning
+        warnings.simplefilter("ignore")
+        _xla_flags.ensure_xla_flags()
+    assert (_xla_flags.FLAG in os.environ["XLA_FLAGS"]) is needed
 
 
 def test_the_level_is_set_only_where_it_was_measured_faster():
