@@ -45,7 +45,6 @@ class Engine:
         self.compiler_options = compiler_options(cfg.compile_level,
                                                  task_info(cfg.task).compile_level)
         self._compiled: dict = {}
-        self._init_programs: dict = {}  # capacity -> jitted initial state (_init_program)
         self.compile_seconds: dict[str, float] = {}  # the wall time a program cost the run
         self.ahead_seconds: dict[str, float] = {}  # compile time spent ahead, in the background
         self._ahead: ThreadPoolExecutor | None = None
@@ -232,24 +231,8 @@ class Engine:
         return seed_devices.place(self.mesh, tree)
 
     def init_seeds(self, seeds, capacity: int | None = None) -> RunState:
-        return self._init_program(capacity)(self.place(_seed_keys(seeds)))
-
-    def _init_program(self, capacity: int | None):
-        """One jitted initial-state program per capacity, so the trace `compile_first_chunk_
-        ahead` makes for its shapes is the one `init_seeds` compiles (jit caches it)."""
-        if capacity not in self._init_programs:
-            self._init_programs[capacity] = self.per_seed(partial(self.init, capacity=capacity))
-        return self._init_programs[capacity]
-
-    def compile_first_chunk_ahead(self, seeds) -> None:
-        """Starts compiling a fresh run's first chunk in the background, from the initial
-        state's shapes, so that it compiles while the main thread compiles the initial state
-        (cheetah_run, reduced PEBBLE, cold, this 2-core CPU: 8 s and 16-19 s of XLA, one
-        core each)."""
-        shapes = jax.eval_shape(self._init_program(None), _seed_keys(seeds))
-        length = self.chunk_plan(0)[1]
-        name = self._chunk_name(0, length)
-        self.compile_ahead(name, *self._chunk_program(shapes, 0, length, name))
+        keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
+        return self.per_seed(partial(self.init, capacity=capacity))(self.place(keys))
 
     def compiled_chunk(self, rs: RunState, step0: int, length: int):
         """The compiled program of `length` env steps from `step0`: one per length for every
@@ -316,14 +299,8 @@ def _lower_and_compile(fn, shapes):
     return fn.lower(*shapes).compile(), time.perf_counter() - t0
 
 
-def _seed_keys(seeds) -> np.ndarray:
-    return np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
-
-
 def _abstract(x) -> jax.ShapeDtypeStruct:
-    weak = getattr(x, "weak_type", None)  # a ShapeDtypeStruct's own (jax.eval_shape)
-    if weak is None:
-        weak = getattr(getattr(x, "aval", None), "weak_type", False)
+    weak = getattr(getattr(x, "aval", None), "weak_type", False)
     return jax.ShapeDtypeStruct(np.shape(x), np.result_type(x), weak_type=weak)
 
 

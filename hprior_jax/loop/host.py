@@ -60,8 +60,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
     `compile_ahead`: when to start compiling the later programs (evaluation, the method's
     events, other chunk lengths) in a background thread (`Engine.compile_run_ahead`):
-    "after_first" (default) once the main thread has compiled the first chunk's program
-    (a fresh run compiles that one in the background too, beside the initial state's);
+    "after_first" (default) once the main thread has compiled the first chunk's program;
     "first_phase_apart" the same, but the first phase's chunks (random actions) run a
     program of that phase alone, quicker to compile (`Engine._chunk_name`); "at_start"
     before the first chunk's compile (the two compiles then share the cores and the first
@@ -80,13 +79,6 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     seeds = list(cfg.seeds)
     ckpt = Checkpointer(run_dir / "checkpoints")
     step = 0
-    # a run cut short (tests) would compile programs it never runs
-    ahead = compile_ahead if max_chunks is None else "off"
-    if compile_ahead not in AHEAD_WHEN:
-        raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
-    engine.first_phase_apart = ahead == "first_phase_apart"
-    if not resume and ahead in ("after_first", "first_phase_apart"):
-        engine.compile_first_chunk_ahead(seeds)  # beside the initial state's compile
     rs = engine.init_seeds(seeds, capacity=saved_capacity if resume else None)
     if resume and ckpt.latest_step() is not None:
         step, rs = restore_latest(ckpt, rs)
@@ -114,6 +106,11 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     interrupt = interrupt or StopRequest()
     try:
         engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
+        if compile_ahead not in AHEAD_WHEN:
+            raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
+        # a run cut short (tests) would compile programs it never runs
+        ahead = compile_ahead if max_chunks is None else "off"
+        engine.first_phase_apart = ahead == "first_phase_apart"
         if ahead == "at_start":
             engine.compile_run_ahead(rs, step)
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
