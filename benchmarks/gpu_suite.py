@@ -5,8 +5,8 @@
 
 On an H200 (2026-12-04) the parts took env 321 s, sac 71 s, world_model 263 s, reward 28 s:
 more than one 10-minute command, so run them in two (`--parts env` then the rest); each part
-writes its CSV and suite.csv as it ends. How the GPU machine was set up (its own jax 0.11.2,
-carried wheels): results/gpu_suite/gpu_NVIDIA_H200/README.md.
+writes its CSV and suite.csv as it ends. On a machine with its own jax and no registry,
+`python -m benchmarks.gpu_carry` packs what it lacks (results/gpu_suite/gpu_NVIDIA_H200/).
 
 Each part calls the single-purpose benchmark that owns the measurement, on the default JAX
 device (the GPU when JAX sees one):

@@ -78,9 +78,10 @@ def _lazy(module: str, cls: str) -> Callable[..., Task]:
 
 # XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/results/
 # compile_level.csv, reduced PEBBLE, 12000 steps, cold): cheetah_run's first env step 8-30 s
-# sooner in 3 of 3 pairs, chunks at the same speed; quadruped_walk (1 pair) 15 s sooner and
-# the whole run 93 s shorter. Not walker_walk (1 pair: 4 s sooner, evaluation 27% slower,
-# wall -3 s) nor MetaWorld (steps 2-29% slower at level 1).
+# sooner in 3 of 3 pairs, chunks at the same speed; quadruped_walk 15 and 30 s sooner in 2 of
+# 2 pairs (the whole run -93 then +10 s: its chunks' speed is noise). Not walker_walk (4 and
+# 16 s sooner, but evaluation 27-29% slower in 2 of 2 pairs, about +20 s over a reduced run)
+# nor MetaWorld (steps 2-29% slower at level 1).
 _DMC_LEVELS = {"cheetah_run": 1, "quadruped_walk": 1}
 
 # DM Control ports (tasks/dm_control/): 1000 control steps each (a test checks the built tasks)

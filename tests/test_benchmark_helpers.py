@@ -112,3 +112,24 @@ def test_gpu_suite_measures_updates_at_tiny_sizes_on_cpu(tmp_path):
 def test_gpu_suite_end_to_end_part_at_tiny_sizes_on_cpu(tmp_path):
     e2e = _gpu_suite_tiny(tmp_path, ("end_to_end",))["end_to_end"][0]
     assert int(e2e["steps"]) == 20 and float(e2e["env_steps_per_s"]) > 0
+
+
+def test_gpu_carry_keeps_what_the_dm_control_tasks_load(tmp_path):
+    """The slim dm_control still builds the ported DM Control models (the GPU machine's
+    copy); the wheels it asks for are the locked versions."""
+    import os
+    import subprocess
+    import sys
+
+    from benchmarks import gpu_carry
+
+    assert gpu_carry.locked_version("mujoco") == gpu_carry.locked_version("mujoco-mjx")
+    assert all(gpu_carry.locked_version(name) for name in gpu_carry.WHEELS)
+    gpu_carry.slim_dm_control(tmp_path)
+    assert not (tmp_path / "dm_control" / "locomotion").exists()
+    code = ("import dm_control, sys; assert dm_control.__file__.startswith(sys.argv[1]); "
+            "from tasks.dm_control.common import load_suite_model; "
+            "from tasks.dm_control.quadruped import load_quadruped_model; "
+            "[load_suite_model(d) for d in ('cheetah', 'walker')]; load_quadruped_model(10)")
+    env = dict(os.environ, PYTHONPATH=f"{tmp_path}:{gpu_carry.ROOT}", MUJOCO_GL="disable")
+    subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env, check=True)

@@ -1,0 +1,89 @@
+"""Packs what a lent GPU machine lacks to run this project under its own jax, into `.gpu/`.
+
+    python -m benchmarks.gpu_carry            # here, once; then carry `.gpu` to the machine
+
+The lent machine (one H200 on 2026-12-04) has Python 3.12 with its own CUDA build of jax,
+flax, optax, chex, orbax and torch, and no package registry. This writes:
+- `.gpu/whl/`: cp312 manylinux wheels of the packages it lacks, at the versions of
+  requirements.lock (mujoco, mujoco-mjx, tyro, ...);
+- `.gpu/site/dm_control`: the installed dm_control without its largest folders (its 56 MB
+  wheel and mujoco's 27 MB do not fit the 64 MiB a call can carry together); the suite's
+  cheetah, walker and quadruped load from what is left;
+- `.gpu/run.sh`: sourced at the start of the command there, it installs the wheels and sets
+  PYTHONPATH and MUJOCO_GL.
+Then, there: `source .gpu/run.sh && python3 -m benchmarks.gpu_suite --parts ... --out $OUT`.
+`.gpu/` is git-ignored.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+WHEELS = ("mujoco", "mujoco-mjx", "dm-env", "dm-tree", "PyOpenGL", "tyro", "docstring_parser",
+          "typeguard", "trimesh", "tensorboardX")
+# dm_control's parts that the suite's tasks never import (locomotion alone is 83 MB)
+DROP = ("locomotion", "manipulation", "suite/dog_assets", "mujoco/testing", "viewer", "blender",
+        "suite/all_domains.png")
+PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_24_x86_64",
+             "manylinux_2_17_x86_64", "manylinux2014_x86_64")
+RUN_SH = """\
+# sourced on the GPU machine, from the repository root (benchmarks/gpu_carry.py wrote it)
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \\
+    --target /tmp/site .gpu/whl/*.whl || return 1
+export PYTHONPATH=$PWD:$PWD/.gpu/site:/tmp/site MUJOCO_GL=disable PYTHONUNBUFFERED=1
+"""
+
+
+def locked_version(name: str) -> str:
+    key = name.lower().replace("_", "-")
+    for line in (ROOT / "requirements.lock").read_text().splitlines():
+        pkg, _, version = line.partition("==")
+        if pkg.strip().lower().replace("_", "-") == key:
+            return version.strip()
+    raise KeyError(f"{name} is not in requirements.lock")
+
+
+def download_wheels(dest: Path, python: str = "3.12") -> None:
+    dest.mkdir(parents=True, exist_ok=True)
+    platforms = [a for p in PLATFORMS for a in ("--platform", p)]
+    for name in WHEELS:
+        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps",
+                        "--only-binary=:all:", "--python-version", python, "--implementation",
+                        "cp", *platforms, "-d", str(dest), f"{name}=={locked_version(name)}"],
+                       check=True)
+
+
+def slim_dm_control(dest: Path) -> None:
+    import dm_control
+
+    source = Path(dm_control.__file__).parent
+    target = dest / "dm_control"
+    shutil.rmtree(target, ignore_errors=True)
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns("__pycache__", "*_test.py"))
+    for part in DROP:
+        path = target / part
+        shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+
+
+def size_mib(path: Path) -> float:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--dest", type=Path, default=ROOT / ".gpu")
+    args = p.parse_args(argv)
+    download_wheels(args.dest / "whl")
+    slim_dm_control(args.dest / "site")
+    (args.dest / "run.sh").write_text(RUN_SH)
+    print(f"{args.dest}: {size_mib(args.dest):.1f} MiB (a call carries at most 64 MiB with "
+          "the working tree)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
