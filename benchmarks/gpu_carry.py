@@ -50,11 +50,10 @@ def locked_version(name: str) -> str:
 def download_wheels(dest: Path, python: str = "3.12") -> None:
     dest.mkdir(parents=True, exist_ok=True)
     platforms = [a for p in PLATFORMS for a in ("--platform", p)]
-    for name in WHEELS:
-        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps",
-                        "--only-binary=:all:", "--python-version", python, "--implementation",
-                        "cp", *platforms, "-d", str(dest), f"{name}=={locked_version(name)}"],
-                       check=True)
+    subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps",
+                    "--only-binary=:all:", "--python-version", python, "--implementation", "cp",
+                    *platforms, "-d", str(dest),
+                    *(f"{name}=={locked_version(name)}" for name in WHEELS)], check=True)
 
 
 def slim_dm_control(dest: Path) -> None:
