@@ -22,6 +22,12 @@ the episodes with uniform random actions and half bang-bang (each actuator at a 
 of its range, which drives the joints to their limits), counting the steps in which each
 geom pair touches. Pairs without a world-body (floor) geom are the self contacts that the
 ports' default `contacts="floor"` leaves out. Writes benchmarks/results/contact_census.csv.
+
+    python -m benchmarks.env_profile --census-counts [--episodes 60]
+
+How many contacts the same C env holds at once, after every substep (random, bang-bang and
+bang-bang held for 50 steps, in turn), against each port's MJX contact cap
+(`tasks.physics.with_max_contacts`). Writes benchmarks/results/contact_count_census.csv.
 """
 from __future__ import annotations
 
@@ -32,7 +38,6 @@ from pathlib import Path
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco.mjx._src import collision_driver, constraint, forward, sensor, smooth
@@ -43,6 +48,7 @@ from tasks.physics import mjx
 
 RESULTS = Path(__file__).resolve().parent / "results" / "env_profile.csv"
 CENSUS = Path(__file__).resolve().parent / "results" / "contact_census.csv"
+COUNTS = Path(__file__).resolve().parent / "results" / "contact_count_census.csv"
 
 
 def substep_stages(m: mjx.Model):
@@ -130,31 +136,49 @@ def profile_task(name: str, batch: int, warm_steps: int, repeats: int) -> list[d
     return rows
 
 
-def contact_census(name: str, episodes: int, seed: int = 0,
-                   exported: tuple[Path, ...] = ()) -> list[dict]:
-    """Steps with a contact per geom pair in dm_control's C env (see the module docstring);
-    `exported`: policies written by `hprior export`, each run for `episodes` // 2 more."""
+HOLD_STEPS = 50  # the `hold` policy keeps one bang-bang action this many control steps
+
+
+def _census_plan(name: str, episodes: int, policies: tuple[str, ...], seed: int,
+                 exported: tuple[Path, ...]):
+    """dm_control's C env for `name` and an action function per census episode: `policies`
+    in turn, then each `hprior export` policy of `exported` for `episodes` // 2 more."""
     from benchmarks.dm_control_parity import flatten_obs, reference_env
     from hprior_jax.export import load_policy
 
     env = reference_env(name, seed)
-    m, d = env.physics.model.ptr, env.physics.data.ptr
     spec = env.action_spec()
     rng = np.random.RandomState(seed)
-    trained = {f"export:{p}": jax.jit(load_policy(p)) for p in exported}
-    plan = [("random", "bang_bang")[e % 2] for e in range(episodes)]
-    plan += [p for p in trained for _ in range(episodes // 2)]
+    bang = lambda: np.where(rng.rand(*spec.shape) < 0.5, spec.minimum, spec.maximum)
+    held = [None]
+
+    def hold(t):
+        if t % HOLD_STEPS == 0:
+            held[0] = bang()
+        return held[0]
+
+    acts = {"random": lambda t: rng.uniform(spec.minimum, spec.maximum),
+            "bang_bang": lambda t: bang(), "hold": hold}
+    observe = lambda: flatten_obs(env.task.get_observation(env.physics))
+    for p in exported:  # agent actions live in [-1, 1]; the DMC ports' actuators do too
+        policy = jax.jit(load_policy(p))
+        acts[f"export:{p}"] = lambda t, f=policy: np.asarray(f(observe()))
+    plan = [policies[e % len(policies)] for e in range(episodes)]
+    plan += [f"export:{p}" for p in exported for _ in range(episodes // 2)]
+    return env, [(policy, acts[policy]) for policy in plan]
+
+
+def contact_census(name: str, episodes: int, seed: int = 0,
+                   exported: tuple[Path, ...] = ()) -> list[dict]:
+    """Steps with a contact per geom pair in dm_control's C env (see the module docstring);
+    `exported`: policies written by `hprior export`, each run for `episodes` // 2 more."""
+    env, plan = _census_plan(name, episodes, ("random", "bang_bang"), seed, exported)
+    m, d = env.physics.model.ptr, env.physics.data.ptr
     counts, steps = {}, {}
-    for policy in plan:
-        ts = env.reset()
+    for policy, act in plan:
+        ts, t = env.reset(), 0
         while not ts.last():
-            if policy == "random":
-                action = rng.uniform(spec.minimum, spec.maximum)
-            elif policy == "bang_bang":
-                action = np.where(rng.rand(*spec.shape) < 0.5, spec.minimum, spec.maximum)
-            else:  # agent actions live in [-1, 1]; the DMC ports' actuators do too
-                action = np.asarray(trained[policy](flatten_obs(ts.observation)))
-            ts = env.step(action)
+            ts, t = env.step(act(t)), t + 1
             steps[policy] = steps.get(policy, 0) + 1
             touching = {tuple(sorted((int(c.geom1), int(c.geom2)))) for c in d.contact[:d.ncon]}
             for pair in touching:
@@ -170,6 +194,39 @@ def contact_census(name: str, episodes: int, seed: int = 0,
     return rows
 
 
+def contact_counts(name: str, episodes: int, seed: int = 0,
+                   exported: tuple[Path, ...] = ()) -> list[dict]:
+    """How many contacts C MuJoCo holds at once, counted after every substep of dm_control's
+    env (random, bang-bang and held bang-bang actions in turn, then `exported` policies),
+    against the port's MJX contact cap (`tasks.physics.with_max_contacts`): a substep with
+    more contacts than the cap is one where the port would drop the shallowest ones."""
+    task = tasks.make(name)
+    candidates = int(mjx.make_data(tasks.make(name, max_contacts=None).model)
+                     ._impl.contact.dist.shape[-1])
+    env, plan = _census_plan(name, episodes, ("random", "bang_bang", "hold"), seed, exported)
+    physics_, d = env.physics, env.physics.data.ptr
+    hist = {}  # (policy, contacts at once) -> substeps
+    for policy, act in plan:
+        env.reset()
+        for t in range(task.episode_length):
+            physics_.set_control(act(t))  # what the tasks' `before_step` does
+            for _ in range(task.n_sub_steps):  # dm_control's step, one substep at a time
+                physics_.step()
+                key = (policy, int(d.ncon))
+                hist[key] = hist.get(key, 0) + 1
+    rows = []
+    for policy in dict.fromkeys(p for p, _ in plan):
+        h = {n: c for (p, n), c in hist.items() if p == policy}
+        rows.append(dict(task=name, policy=policy, episodes=sum(p == policy for p, _ in plan),
+                         substeps=sum(h.values()), max_at_once=max(h),
+                         substeps_over_cap=sum(c for n, c in h.items()
+                                               if task.max_contacts and n > task.max_contacts),
+                         cap=task.max_contacts, candidates=candidates,
+                         histogram=" ".join(f"{n}:{h[n]}" for n in sorted(h))))
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main(argv=None):
     from benchmarks.dm_control_parity import SUITE_NAMES
 
@@ -181,11 +238,18 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--census", action="store_true",
                         help="count the reference simulator's contacts per geom pair instead")
+    parser.add_argument("--census-counts", action="store_true",
+                        help="count the contacts the reference simulator holds at once, "
+                             "after every substep, against the ports' contact caps")
     parser.add_argument("--episodes", type=int, default=20, help="census episodes per task")
     parser.add_argument("--exported", nargs="*", type=Path, default=[],
                         help="census: also run these `hprior export` policies (of the task)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.census_counts:
+        write_rows([r for name in args.tasks for r in contact_counts(
+            name, args.episodes, exported=tuple(args.exported))], args.out or COUNTS)
+        return
     if args.census:
         write_rows([r for name in args.tasks for r in contact_census(name, args.episodes,
                                                                  exported=tuple(args.exported))],

@@ -7,12 +7,13 @@ drawn inside the scan, after a vmapped reset; the first call (compile) is timed 
 best of `--repeats` runs is reported. Reference: the same task in its own package (dm_control
 `env.step` with random actions, one Python env on one core), via a per-domain function in
 REFERENCES so other domains (MetaWorld) can add theirs. `c_over_mjx` = reference env-steps/s
-divided by MJX env-steps/s summed over the batch (>1: MJX slower). `--variants LOOP:CONTACTS
-...` times each batch once per combination, in the same run: LOOP `while` (the ports' line
-search, tasks/physics.py) or `scan` (MJX's own, the reference), CONTACTS `floor` (the ports'
-default) or `all` (dm_control's self-collision pairs kept; DM Control only). Default: the
-ports' defaults, `while:floor`. Writes benchmarks/results/env_throughput.csv and prints a
-table.
+divided by MJX env-steps/s summed over the batch (>1: MJX slower). `--variants
+LOOP:CONTACTS[:CAP] ...` times each batch once per combination, in the same run: LOOP `while`
+(the ports' line search, tasks/physics.py) or `scan` (MJX's own, the reference), CONTACTS
+`floor` (the ports' default) or `all` (dm_control's self-collision pairs kept; DM Control
+only), CAP `task` (the port's MJX contact cap, the default) or `none` (a slot for every
+candidate contact; DM Control only). Default: the ports' defaults, `while:floor:task`.
+Writes benchmarks/results/env_throughput.csv and prints a table.
 """
 from __future__ import annotations
 
@@ -28,7 +29,6 @@ import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 from tasks import physics
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results" / "env_throughput.csv"
@@ -105,9 +105,10 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=50, help="control steps per timed rollout")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--ref-steps", type=int, default=2000)
-    parser.add_argument("--variants", nargs="+", default=["while:floor"],
-                        help="LOOP:CONTACTS to time: line-search loop while|scan "
-                             "(tasks.physics.linesearch_loop), contacts floor|all (DM Control)")
+    parser.add_argument("--variants", nargs="+", default=["while:floor:task"],
+                        help="LOOP:CONTACTS[:CAP] to time: line-search loop while|scan "
+                             "(tasks.physics.linesearch_loop), contacts floor|all and contact "
+                             "cap task|none (DM Control)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
@@ -116,14 +117,17 @@ def main(argv=None):
     for name in args.tasks:
         ref = REFERENCES[tasks.info(name).domain](name, args.ref_steps, 0)
         for batch, variant in ((b, v) for b in args.batch for v in args.variants):
-            loop, contacts = variant.split(":")
-            options = {"contacts": contacts} if tasks.info(name).domain == "dm_control" else {}
+            loop, contacts, cap = (variant.split(":") + ["task"])[:3]
+            options = {}
+            if tasks.info(name).domain == "dm_control":
+                options = {"contacts": contacts} | ({"max_contacts": None} if cap == "none" else {})
             task = tasks.make(name, **options)
             with physics.linesearch_loop(loop):
                 compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats)
             sps = batch * args.steps / run_s
             rows.append(dict(
-                task=name, batch=batch, linesearch=loop, contacts=contacts, steps=args.steps,
+                task=name, batch=batch, linesearch=loop, contacts=contacts,
+                contact_cap=getattr(task, "max_contacts", None), steps=args.steps,
                 n_sub_steps=task.n_sub_steps,
                 compile_s=round(compile_s, 2), run_s=round(run_s, 4),
                 mjx_env_steps_per_s=round(sps, 1),
@@ -138,7 +142,8 @@ def main(argv=None):
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    cols = ["task", "batch", "linesearch", "contacts", "compile_s", "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
+    cols = ["task", "batch", "linesearch", "contacts", "contact_cap", "compile_s",
+            "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
     print("\n" + " | ".join(f"{c:>20}" for c in cols))
     for r in rows:
         print(" | ".join(f"{str(r[c]):>20}" for c in cols))

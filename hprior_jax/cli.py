@@ -358,6 +358,9 @@ def _grid(argv: list[str]) -> int:
     parser.add_argument("--contacts", default="floor", choices=("floor", "all"),
                         help="DM Control physics, as `hprior train --contacts`; grids run "
                              "before 2026-12-02 were run with `all`")
+    parser.add_argument("--contact-cap", default="task", choices=("task", "none"),
+                        help="DM Control physics, as `hprior train --contact-cap`; grids run "
+                             "before 2026-12-04 were run with `none`")
     parser.add_argument("--hand", default="arm", choices=("arm", "free"),
                         help="MetaWorld scene, as `hprior train --hand`; grids run before "
                              "this option were run with `free`")
@@ -377,7 +380,8 @@ def _grid(argv: list[str]) -> int:
 
     from hprior_jax.presets import EVAL_BUDGETS
 
-    overrides = dict(EVAL_BUDGETS[args.eval_budget], contacts=args.contacts, hand=args.hand)
+    overrides = dict(EVAL_BUDGETS[args.eval_budget], contacts=args.contacts,
+                     contact_cap=args.contact_cap, hand=args.hand)
     overrides.update({k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
                       if v is not None})
     enable_compilation_cache()

@@ -23,7 +23,7 @@ with contextlib.redirect_stdout(io.StringIO()):
 from mujoco.mjx._src import solver as _mjx_solver  # noqa: E402
 
 __all__ = ["mjx", "step1", "step2", "legacy_substeps", "put_model", "solve", "forward", "step",
-           "linesearch_loop"]
+           "linesearch_loop", "with_max_contacts"]
 
 
 # -- the constraint solver's line search: a while loop, not a scan of ls_iterations ------
@@ -96,6 +96,33 @@ def step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
 
 def put_model(model: mujoco.MjModel) -> mjx.Model:
     return mjx.put_model(model, impl="jax")
+
+
+# MJX's collision reads this custom numeric: after the narrow phase it keeps only the K
+# deepest contacts of each condim group (`lax.top_k` on the distance) and allocates contact
+# slots and constraint rows for those K alone. While no more than K contacts are active at
+# once, the kept set holds every active one and the dynamics are the same up to rounding
+# (the rows come in another order); inactive slots carry no force but cost solver work.
+MAX_CONTACTS_NUMERIC = "max_contact_points"
+
+
+def with_max_contacts(xml: str | bytes, max_contacts: int | None) -> str:
+    """`xml` (a whole MJCF document) with MJX's contact cap set to `max_contacts` (None:
+    unchanged, a slot for every candidate contact). C MuJoCo ignores the numeric."""
+    xml = xml.decode() if isinstance(xml, bytes) else xml
+    if max_contacts is None:
+        return xml
+    if max_contacts < 1:
+        raise ValueError(f"max_contacts={max_contacts}: at least 1, or None for no cap")
+    end = xml.rindex("</mujoco>")
+    numeric = f'<custom><numeric name="{MAX_CONTACTS_NUMERIC}" data="{int(max_contacts)}"/></custom>'
+    return xml[:end] + numeric + xml[end:]
+
+
+def max_contacts_of(model: mujoco.MjModel) -> int | None:
+    """The contact cap MJX applies to `model` (`with_max_contacts`), None if uncapped."""
+    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, MAX_CONTACTS_NUMERIC)
+    return None if i < 0 else int(model.numeric_data[model.numeric_adr[i]])
 
 
 def step1(m: mjx.Model, d: mjx.Data) -> mjx.Data:

@@ -298,17 +298,17 @@ def test_grid_passes_eval_budget_and_contacts_as_overrides(tmp_path, monkeypatch
                         **k: seen.append(overrides))
     assert cli.main(["grid", "--tasks", "toy_point", "--out", str(tmp_path)]) == 0
     assert cli.main(["grid", "--tasks", "toy_point", "--eval-budget", "cpu", "--contacts",
-                     "all", "--eval-every", "3000", "--out", str(tmp_path)]) == 0
-    assert seen == [{"contacts": "floor", "hand": "arm"},
-                    {"contacts": "all", "hand": "arm", "num_eval_episodes": 5,
-                     "eval_every": 3000}]
+                     "all", "--contact-cap", "none", "--eval-every", "3000",
+                     "--out", str(tmp_path)]) == 0
+    assert seen == [{"contacts": "floor", "contact_cap": "task", "hand": "arm"},
+                    {"contacts": "all", "contact_cap": "none", "hand": "arm",
+                     "num_eval_episodes": 5, "eval_every": 3000}]
     # each physics option reaches only the tasks of its domain
-    cfg = grid.run_config(tmp_path, "drawer_open", "sac", (1,), "smoke",
-                          {"contacts": "all", "hand": "free"})
-    assert (cfg.contacts, cfg.hand) == ("floor", "free")
-    cfg = grid.run_config(tmp_path, "cheetah_run", "sac", (1,), "smoke",
-                          {"contacts": "all", "hand": "free"})
-    assert (cfg.contacts, cfg.hand) == ("all", "arm")
+    physics = {"contacts": "all", "contact_cap": "none", "hand": "free"}
+    cfg = grid.run_config(tmp_path, "drawer_open", "sac", (1,), "smoke", physics)
+    assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("floor", "task", "free")
+    cfg = grid.run_config(tmp_path, "cheetah_run", "sac", (1,), "smoke", physics)
+    assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("all", "none", "arm")
 
 
 def test_grid_and_train_share_the_preset_flag_and_default(tmp_path, monkeypatch):

@@ -104,6 +104,10 @@ PHYSICS_OPTIONS = {
         "dm_control", "floor", "all", lambda value: {"contacts": value},
         "--{name} {value}: only the DM Control ports have self-collision pairs to keep "
         "({task} has explicit pairs)"),
+    "contact_cap": PhysicsOption(
+        "dm_control", "task", "none", lambda value: {"max_contacts": None},
+        "--{name} {value}: only the DM Control ports cap their contacts ({task} has explicit "
+        "pairs)"),
     # `free`: the free-hand ports' scene as it was, with the wrist box on every task
     "hand": PhysicsOption(
         "metaworld", "arm", "free", lambda value: {"arm": False, "wrist": "box"},
@@ -113,8 +117,9 @@ PHYSICS_OPTIONS = {
 
 def task_options(cfg) -> dict:
     """The port options a run configuration asks for beyond the ports' defaults (so the
-    default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control,
-    `arm=False` (`hand="free"`) on MetaWorld."""
+    default build is the one `tasks.make(name)` caches): `contacts="all"` and
+    `max_contacts=None` (`contact_cap="none"`) on DM Control, `arm=False` (`hand="free"`) on
+    MetaWorld."""
     domain = task_info(cfg.task).domain
     options = {}
     for name, option in PHYSICS_OPTIONS.items():

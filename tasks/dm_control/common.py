@@ -10,11 +10,13 @@ import mujoco
 import numpy as np
 
 from tasks.base import Task, TaskState
-from tasks.physics import forward, legacy_substeps, mjx, put_model
+from tasks.physics import (forward, legacy_substeps, max_contacts_of, mjx, put_model,
+                            with_max_contacts)
 
 
-def load_suite_model(domain: str) -> mujoco.MjModel:
-    """Compiles dm_control's own XML (and assets) for `domain` at run time.
+def load_suite_model(domain: str, max_contacts: int | None = None) -> mujoco.MjModel:
+    """Compiles dm_control's own XML (and assets) for `domain` at run time, with MJX's
+    contact cap `max_contacts` (`tasks.physics.with_max_contacts`; C MuJoCo ignores it).
 
     We never copy dm_control's files: the installed package is the source of the model and
     the reference the parity tests compare against."""
@@ -26,7 +28,7 @@ def load_suite_model(domain: str) -> mujoco.MjModel:
             "(it is a core dependency of hprior_jax)"
         ) from e
     xml, assets = module.get_model_and_assets()
-    return mujoco.MjModel.from_xml_string(xml, assets)
+    return mujoco.MjModel.from_xml_string(with_max_contacts(xml, max_contacts), assets)
 
 
 CONTACTS = ("floor", "all")
@@ -62,6 +64,10 @@ class DMControlTask(Task):
     contacts: "floor" (default) keeps only the contacts of body geoms with the floor (see
     `floor_contacts_only`; at batch 128 quadruped steps 2.9x faster, cheetah 2.2x); "all"
     keeps dm_control's self-collision pairs too, for a policy that folds the body onto itself.
+
+    Each port compiles its model with MJX's contact cap (`max_contacts` of the subclass,
+    `tasks.physics.with_max_contacts`; None: a slot for every candidate contact), read
+    back here as `self.max_contacts`.
     """
 
     domain = "dm_control"
@@ -72,6 +78,7 @@ class DMControlTask(Task):
         if contacts not in CONTACTS:
             raise ValueError(f"contacts={contacts!r}: one of {CONTACTS}")
         self.contacts = contacts
+        self.max_contacts = max_contacts_of(model)
         if contacts == "floor":
             model = floor_contacts_only(model)
         self.mj_model = model

@@ -35,14 +35,20 @@ CONTROL_TIMESTEP = 0.025
 TIME_LIMIT = 25.0
 STAND_HEIGHT = 1.2
 WALK_SPEED = 1.0
+# No MJX contact cap (tasks.physics.with_max_contacts): of 14 candidate floor contacts (7
+# capsules, 2 each) C MuJoCo held up to 10 at once in 60 episodes of random, bang-bang and
+# held actions (`python -m benchmarks.env_profile --census-counts`), and a cap of 10 stepped
+# only 1.17x faster at batch 128 (12: no gain), too little for so thin a margin
+MAX_CONTACTS = None
 
 
 class WalkerWalk(DMControlTask):
     name = "walker_walk"
     obs_size = 24
 
-    def __init__(self, move_speed: float = WALK_SPEED, contacts: str = "floor"):
-        model = load_suite_model("walker")
+    def __init__(self, move_speed: float = WALK_SPEED, contacts: str = "floor",
+                 max_contacts: int | None = MAX_CONTACTS):
+        model = load_suite_model("walker", max_contacts)
         super().__init__(model, control_timestep=CONTROL_TIMESTEP, time_limit=TIME_LIMIT,
                          contacts=contacts)
         self.move_speed = move_speed

@@ -1,14 +1,17 @@
-"""The two speed-ups of the DM Control ports that must not change their physics.
+"""The speed-ups of the DM Control ports that must not change their physics.
 
 - `tasks.physics` traces MJX's constraint line search as a while loop: the result must be
   the scan's, bit for bit, on states with active contacts.
 - `contacts="floor"` drops the self-collision pairs: every floor pair stays with the same
   contact parameters, and a C MuJoCo trajectory is unchanged (no self contact occurs).
+- MJX's contact cap (`max_contacts`) keeps the deepest contacts only: with no more active
+  than the cap, the same trajectory up to rounding.
 """
 import itertools
 import json
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
@@ -118,3 +121,63 @@ def test_runs_before_the_hand_option_restore_with_the_free_hand():
     assert RunConfig.from_dict({k: v for k, v in dmc.items() if k != "hand"}).hand == "arm"
     with pytest.raises(ValueError, match="only the MetaWorld ports"):
         task_options(RunConfig(task="cheetah_run", algo="sac", hand="free"))
+
+
+CAPPED = ["cheetah_run", "quadruped_walk"]
+
+
+@pytest.mark.parametrize("name", CAPPED)
+def test_contact_cap_keeps_every_active_contact(name):
+    """The capped port (the default) and the uncapped one, `forward` on 8 poses sunk 2-20 cm
+    into the floor with random joint angles: the cap allocates its slots only, every active
+    contact is among them, and the accelerations agree to float32 rounding. (Trajectories
+    against dm_control: the parity tests in test_dm_control_tasks.py run the capped ports.)"""
+    capped, full = tasks.make(name), tasks.make(name, max_contacts=None)
+    assert capped.max_contacts is not None and full.max_contacts is None
+    m = capped.mj_model
+    rng = np.random.RandomState(0)
+    qpos = np.tile(m.qpos0, (8, 1))
+    hinges = [m.jnt_qposadr[j] for j in range(m.njnt) if m.jnt_type[j] == 3 and m.jnt_limited[j]]
+    for i, j in enumerate(j for j in range(m.njnt) if m.jnt_type[j] == 3 and m.jnt_limited[j]):
+        qpos[:, hinges[i]] = rng.uniform(*m.jnt_range[j], size=8)
+    free = m.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
+    z = int(m.jnt_qposadr[0]) + 2 if free else int(m.jnt_qposadr[m.joint("rootz").id])
+
+    def forward(task, q):
+        d = physics.mjx.make_data(task.model).replace(qpos=q)
+        return physics.forward(task.model, d)
+
+    # sink each pose until its lowest point is 2-20 cm under the floor
+    lowest = jax.jit(jax.vmap(lambda q: forward(full, q)._impl.contact.dist.min()))
+    q = jnp.asarray(qpos, jnp.float32)
+    q = q.at[:, z].add(-lowest(q) - jnp.asarray(rng.uniform(0.02, 0.2, size=8), q.dtype))
+    a, b = (jax.jit(jax.vmap(lambda q, t=t: forward(t, q)))(q) for t in (capped, full))
+    assert a._impl.contact.dist.shape[-1] == capped.max_contacts < b._impl.contact.dist.shape[-1]
+    active_a, active_b = (np.asarray(d._impl.contact.dist < 0).sum(-1) for d in (a, b))
+    assert active_b.max() >= 3, "the poses must make several contacts"
+    assert active_b.max() <= capped.max_contacts
+    np.testing.assert_array_equal(active_a, active_b)
+    np.testing.assert_allclose(np.asarray(a.qacc), np.asarray(b.qacc), rtol=1e-3, atol=1e-2)
+
+
+def test_contact_cap_numeric():
+    xml = "<mujoco><worldbody><geom size='1 1 1' type='plane'/></worldbody></mujoco>"
+    assert physics.with_max_contacts(xml, None) == xml
+    model = mujoco.MjModel.from_xml_string(physics.with_max_contacts(xml.encode(), 5))
+    assert physics.max_contacts_of(model) == 5
+    assert physics.max_contacts_of(mujoco.MjModel.from_xml_string(xml)) is None
+    with pytest.raises(ValueError, match="at least 1"):
+        physics.with_max_contacts(xml, 0)
+
+
+def test_runs_before_the_contact_cap_restore_uncapped():
+    d = json.loads(RunConfig(task="quadruped_walk", algo="sac").to_json())
+    assert RunConfig.from_dict(d).contact_cap == "task"
+    old = RunConfig.from_dict({k: v for k, v in d.items() if k != "contact_cap"})
+    assert old.contact_cap == "none"
+    assert task_options(old) == {"max_contacts": None}
+    mw = json.loads(RunConfig(task="drawer_open", algo="sac").to_json())
+    assert RunConfig.from_dict({k: v for k, v in mw.items() if k != "contact_cap"}
+                               ).contact_cap == "task"
+    with pytest.raises(ValueError, match="only the DM Control ports cap"):
+        task_options(RunConfig(task="drawer_open", algo="sac", contact_cap="none"))
