@@ -17,7 +17,10 @@ soft: its own scripted episodes leave the range too) and the share of episodes t
 by more than the tolerance below, and the mean distance between the hand body and the mocap
 target. `--variant` picks the port's scene (see tasks/metaworld/sawyer.py): `arm` keeps
 metaworld's arm (the registered scene), `free` is the arm-less free hand of the first ports
-(with the wrist box on every task, as they had it).
+(with the wrist box on every task, as they had it). `--max-contacts K` builds the port with
+MJX's contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label
+`capK`); the port side also reports `contacts_active_max`, the most contacts of one condim
+group active after any step, against `contact_slots`.
 
 Targets (issue 18), port vs metaworld: return ratio in [0.9, 1.1]; last-step success within
 15 points; excursion beyond the range at most metaworld's + 1 cm (0.05 rad for hinges);
@@ -209,7 +212,7 @@ def run_port(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> d
     ret = np.zeros(episodes)
     first = [None] * episodes
     lo, hi = np.full(episodes, np.inf), np.full(episodes, -np.inf)
-    lag = []
+    lag, active_max = [], 0
     for t in range(steps):
         obs = _policy_obs(task, name, st.obs, st.info)
         act = np.stack([np.clip(policy.get_action(o), -1, 1) for o in obs]).astype(np.float32)
@@ -220,12 +223,20 @@ def run_port(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> d
             if first[i] is None:
                 first[i] = t + 1
         data = st.data
+        contact = data._impl.contact  # active at the step's last substep, per condim group
+        active = np.asarray(contact.dist - contact.includemargin < 0)
+        dims = np.asarray(contact.dim[0]) if contact.dim.ndim > 1 else np.asarray(contact.dim)
+        active_max = max([active_max] + [int(active[:, dims == k].sum(1).max())
+                                         for k in np.unique(dims)])
         lag.extend(np.linalg.norm(np.asarray(data.xpos[:, hand_id])
                                   - np.asarray(data.mocap_pos[:, mocap_id]), axis=1))
         if qadr is not None:
             q = np.asarray(data.qpos[:, qadr])
             lo, hi = np.minimum(lo, q), np.maximum(hi, q)
-    return _summary(m, jid, zip(ret, succ, first, lo, hi), lag)
+    res = _summary(m, jid, zip(ret, succ, first, lo, hi), lag)
+    # the most contacts of one condim group active at once (after a step) and their slots
+    res.update(contacts_active_max=active_max, contact_slots=int(dims.size))
+    return res
 
 
 def targets(port: dict, mw: dict) -> dict:
@@ -260,13 +271,18 @@ def main():
                    help="wrist collider: box, mesh (C only: port_c) or a number of hull points")
     p.add_argument("--keep-cylinders", action="store_true",
                    help="paired cylinders stay cylinders (C only: port_c)")
+    p.add_argument("--max-contacts", type=int, default=None,
+                   help="MJX contact cap per condim group (tasks.physics.with_max_contacts)")
     p.add_argument("--label", default=None, help="label of the port rows (default: variant)")
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args()
     warnings.filterwarnings("ignore", message="Constant")  # metaworld policies' p warnings
+    cap = args.max_contacts and f"cap{args.max_contacts}"
     label = args.label or "-".join(x for x in (args.variant, args.wrist, args.keep_cylinders
-                                                and "cylinders") if x) or "registered"
+                                                and "cylinders", cap) if x) or "registered"
     options = {"keep_cylinders": True} if args.keep_cylinders else {}
+    if args.max_contacts:
+        options["max_contacts"] = args.max_contacts
     rows = []
     for name in args.tasks:
         task = (make_task(name, args.variant, args.wrist, **options)

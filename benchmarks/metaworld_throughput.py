@@ -10,7 +10,8 @@ core, random actions. Writes benchmarks/results/metaworld_throughput.csv.
 `--variant arm|free` builds the port with that scene (tasks/metaworld/sawyer.py) instead of
 the registered one and labels the rows with it (column `scene`). `--linesearch scan` traces
 MJX's own line-search loop instead of the ports' while loop (tasks/physics.py; column
-`linesearch`), the reference for that change.
+`linesearch`), the reference for that change. `--max-contacts K` builds the port with MJX's
+contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label `capK`).
 """
 from __future__ import annotations
 
@@ -80,14 +81,19 @@ def main():
     p.add_argument("--label", default=None, help="scene label (default: variant/registered)")
     p.add_argument("--no-c", action="store_true", help="skip metaworld's C env timing")
     p.add_argument("--linesearch", default="while", choices=["while", "scan"])
+    p.add_argument("--max-contacts", type=int, default=None,
+                   help="MJX contact cap per condim group (tasks.physics.with_max_contacts)")
     args = p.parse_args()
     from benchmarks.metaworld_dynamics import make_task
 
-    label = args.label or "-".join(x for x in (args.variant, args.wrist) if x) or "registered"
+    cap = args.max_contacts and f"cap{args.max_contacts}"
+    label = (args.label or "-".join(x for x in (args.variant, args.wrist, cap) if x)
+             or "registered")
+    options = {"max_contacts": args.max_contacts} if args.max_contacts else {}
     names = args.tasks or [n for n in TASKS if n in tasks.names()]
     rows = []
     for name in names:
-        task = make_task(name, args.variant, args.wrist)
+        task = make_task(name, args.variant, args.wrist, **options)
         m = task.mj_model
         with physics.linesearch_loop(args.linesearch):
             rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats)

@@ -115,8 +115,8 @@ def with_max_contacts(xml: str | bytes, max_contacts: int | None) -> str:
     if max_contacts < 1:
         raise ValueError(f"max_contacts={max_contacts}: at least 1, or None for no cap")
     end = xml.rindex("</mujoco>")
-    numeric = f'<custom><numeric name="{MAX_CONTACTS_NUMERIC}" data="{int(max_contacts)}"/></custom>'
-    return xml[:end] + numeric + xml[end:]
+    numeric = f'<numeric name="{MAX_CONTACTS_NUMERIC}" data="{int(max_contacts)}"/>'
+    return xml[:end] + f"<custom>{numeric}</custom>" + xml[end:]
 
 
 def max_contacts_of(model: mujoco.MjModel) -> int | None:

@@ -75,7 +75,7 @@ import mujoco
 import numpy as np
 
 from tasks.base import Task, TaskState
-from tasks.physics import mjx, put_model, step as physics_step
+from tasks.physics import MAX_CONTACTS_NUMERIC, mjx, put_model, step as physics_step
 
 FRAME_SKIP = 5
 EPISODE_LENGTH = 500  # SawyerXYZEnv.max_path_length
@@ -205,8 +205,8 @@ def exact_shapes_for_c(wrist: str | int, keep_cylinders: bool) -> bool:
 
 
 def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
-                metaworld_invweights: bool = True,
-                keep_cylinders: bool = False) -> tuple[mujoco.MjModel, dict]:
+                metaworld_invweights: bool = True, keep_cylinders: bool = False,
+                max_contacts: int | None = None) -> tuple[mujoco.MjModel, dict]:
     """The simplified MuJoCo model of a metaworld scene (see module docstring).
 
     arm=True: metaworld's arm kept with its joints, inertias and damping (only its geoms go);
@@ -219,7 +219,8 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     metaworld_invweights: give every kept body and joint metaworld's compiled inverse weights
     (see `_copy_invweights`); False keeps the simplified scene's own (the first ports).
     keep_cylinders: paired cylinders stay cylinders with any wrist (C MuJoCo diagnostics
-    only, as with the mesh)."""
+    only, as with the mesh).
+    max_contacts: MJX's contact cap (`tasks.physics.with_max_contacts`), per condim group."""
     exact_shapes = exact_shapes_for_c(wrist, keep_cylinders)
     path = metaworld_xml_path(scene.xml)
     spec = mujoco.MjSpec.from_file(path)
@@ -380,6 +381,8 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
         i2 = full.geom(n2).id if i2 is None else i2
         spec.add_pair(geomname1=n1, geomname2=n2, **_mix_pair_params(full, i1, i2))
 
+    if max_contacts is not None:
+        spec.add_numeric(name=MAX_CONTACTS_NUMERIC, data=[max_contacts])
     model = spec.compile()
     for i in range(model.neq):
         if model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
@@ -506,10 +509,12 @@ class SawyerTask(Task):
     goal_low: tuple | None = None  # goal_space; None -> hand bounds (metaworld default)
     goal_high: tuple | None = None
     wrist: str | int = "box"  # the task's wrist collider (build_scene); a task may pick a hull
+    max_contacts: int | None = None  # MJX's contact cap (build_scene); None: every slot
 
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
                  ls_iterations: int = 10, arm: bool = True, wrist: str | int | None = None,
-                 metaworld_invweights: bool = True, keep_cylinders: bool = False):
+                 metaworld_invweights: bool = True, keep_cylinders: bool = False,
+                 max_contacts: int | None | str = "task"):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
         That is metaworld v3's own default (`_partially_observable = True`) and what BPref
@@ -528,16 +533,18 @@ class SawyerTask(Task):
         self.partially_observable = partially_observable
         self.arm = arm
         self.wrist = self.wrist if wrist is None else wrist
+        self.max_contacts = self.max_contacts if max_contacts == "task" else max_contacts
         self.mj_model, self.scene_info = build_scene(
             self.scene, arm=arm, wrist=self.wrist, metaworld_invweights=metaworld_invweights,
-            keep_cylinders=keep_cylinders)
+            keep_cylinders=keep_cylinders, max_contacts=self.max_contacts)
         self.mj_model.opt.iterations = solver_iterations
         self.mj_model.opt.ls_iterations = ls_iterations
         mjx_scene = self.mj_model
         if exact_shapes_for_c(self.wrist, keep_cylinders):  # MJX cannot collide them: its model
             # (kinematics, reset) is the scene with the box wrist, same bodies, joints, sites
             mjx_scene, _ = build_scene(self.scene, arm=arm, wrist="box",
-                                       metaworld_invweights=metaworld_invweights)
+                                       metaworld_invweights=metaworld_invweights,
+                                       max_contacts=self.max_contacts)
             mjx_scene.opt.iterations, mjx_scene.opt.ls_iterations = (solver_iterations,
                                                                      ls_iterations)
         self.model = put_model(mjx_scene)
