@@ -20,7 +20,8 @@ metaworld's arm (the registered scene), `free` is the arm-less free hand of the 
 (with the wrist box on every task, as they had it). `--max-contacts K` builds the port with
 MJX's contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label
 `capK`); the port side also reports `contacts_active_max`, the most contacts of one condim
-group active after any step, against `contact_slots`.
+group active after any step, against `contact_slots`, and per group `contacts_by_condim`
+("condim:most active/slots").
 
 Targets (issue 18), port vs metaworld: return ratio in [0.9, 1.1]; last-step success within
 15 points; excursion beyond the range at most metaworld's + 1 cm (0.05 rad for hinges);
@@ -212,7 +213,7 @@ def run_port(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> d
     ret = np.zeros(episodes)
     first = [None] * episodes
     lo, hi = np.full(episodes, np.inf), np.full(episodes, -np.inf)
-    lag, active_max = [], 0
+    lag, active_max = [], {}
     for t in range(steps):
         obs = _policy_obs(task, name, st.obs, st.info)
         act = np.stack([np.clip(policy.get_action(o), -1, 1) for o in obs]).astype(np.float32)
@@ -226,16 +227,19 @@ def run_port(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> d
         contact = data._impl.contact  # active at the step's last substep, per condim group
         active = np.asarray(contact.dist - contact.includemargin < 0)
         dims = np.asarray(contact.dim[0]) if contact.dim.ndim > 1 else np.asarray(contact.dim)
-        active_max = max([active_max] + [int(active[:, dims == k].sum(1).max())
-                                         for k in np.unique(dims)])
+        for k in np.unique(dims):
+            active_max[k] = max(active_max.get(k, 0), int(active[:, dims == k].sum(1).max()))
         lag.extend(np.linalg.norm(np.asarray(data.xpos[:, hand_id])
                                   - np.asarray(data.mocap_pos[:, mocap_id]), axis=1))
         if qadr is not None:
             q = np.asarray(data.qpos[:, qadr])
             lo, hi = np.minimum(lo, q), np.maximum(hi, q)
     res = _summary(m, jid, zip(ret, succ, first, lo, hi), lag)
-    # the most contacts of one condim group active at once (after a step) and their slots
-    res.update(contacts_active_max=active_max, contact_slots=int(dims.size))
+    # the most contacts of one condim group active at once (after a step), and per group
+    # "condim:most active/slots"
+    res.update(contacts_active_max=max(active_max.values()), contact_slots=int(dims.size),
+               contacts_by_condim=" ".join(f"{k}:{n}/{int((dims == k).sum())}"
+                                           for k, n in sorted(active_max.items())))
     return res
 
 

@@ -11,7 +11,8 @@ core, random actions. Writes benchmarks/results/metaworld_throughput.csv.
 the registered one and labels the rows with it (column `scene`). `--linesearch scan` traces
 MJX's own line-search loop instead of the ports' while loop (tasks/physics.py; column
 `linesearch`), the reference for that change. `--max-contacts K` builds the port with MJX's
-contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label `capK`).
+contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label `capK`),
+`--max-contacts none` without one (label `uncapped`).
 """
 from __future__ import annotations
 
@@ -81,15 +82,19 @@ def main():
     p.add_argument("--label", default=None, help="scene label (default: variant/registered)")
     p.add_argument("--no-c", action="store_true", help="skip metaworld's C env timing")
     p.add_argument("--linesearch", default="while", choices=["while", "scan"])
-    p.add_argument("--max-contacts", type=int, default=None,
-                   help="MJX contact cap per condim group (tasks.physics.with_max_contacts)")
+    p.add_argument("--max-contacts", default=None,
+                   help="MJX contact cap per condim group (tasks.physics.with_max_contacts), "
+                        "or none: every slot (label `uncapped`)")
     args = p.parse_args()
     from benchmarks.metaworld_dynamics import make_task
 
-    cap = args.max_contacts and f"cap{args.max_contacts}"
+    options, cap = {}, None
+    if args.max_contacts is not None:
+        uncapped = args.max_contacts == "none"
+        options = {"max_contacts": None if uncapped else int(args.max_contacts)}
+        cap = "uncapped" if uncapped else f"cap{args.max_contacts}"
     label = (args.label or "-".join(x for x in (args.variant, args.wrist, cap) if x)
              or "registered")
-    options = {"max_contacts": args.max_contacts} if args.max_contacts else {}
     names = args.tasks or [n for n in TASKS if n in tasks.names()]
     rows = []
     for name in names:

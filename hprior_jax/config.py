@@ -53,12 +53,13 @@ class RunConfig:
     steps 2.9x faster, cheetah 2.2x), `all` also dm_control's self-collision pairs. Runs
     written before this option restore with `all`, the physics they were trained on."""
     contact_cap: Literal["task", "none"] = "task"
-    """DM Control tasks: `task` gives MJX contact slots for the port's cap only (`MAX_CONTACTS`
-    in each port: the 8 deepest contacts on cheetah and quadruped, above the 6 C MuJoCo held
-    at once in 60 episodes of random, bang-bang and held actions; walker has no cap): the
-    same dynamics up to rounding while no more are active, cheetah steps 1.7x faster and
-    quadruped 2.3x at batch 128; `none` a slot for every candidate contact. Runs written
-    before this option restore with `none`."""
+    """`task` gives MJX contact slots for the port's cap only (each port's `max_contacts`:
+    cheetah and quadruped keep their 8 deepest contacts, above the 6 C MuJoCo held at once in
+    60 episodes of random, bang-bang and held actions; five MetaWorld ports 8-72 per condim
+    group, above what metaworld's scripted policy made active; walker and door_unlock have no
+    cap): the same dynamics up to rounding while no more are active, and faster steps
+    (cheetah 1.7x, quadruped 2.1x at batch 128; MetaWorld see benchmarks/README); `none` a
+    slot for every candidate contact. Runs written before this option restore with `none`."""
     hand: Literal["arm", "free"] = "arm"
     """MetaWorld tasks: `arm` keeps metaworld's Sawyer arm (its joints, inertias and damping
     under the mocap weld; the scene that moves like metaworld's, see tasks/metaworld/sawyer.py),
@@ -116,7 +117,7 @@ class RunConfig:
         # written before a physics option existed: the physics the run was trained on
         domain = envs.task_info(d["task"]).domain if "task" in d else None
         for name, option in envs.PHYSICS_OPTIONS.items():
-            d.setdefault(name, option.before if domain == option.domain else option.default)
+            d.setdefault(name, option.before if domain in option.domains else option.default)
         d.setdefault("compile_level", "xla")  # what runs before the option compiled at
         return _dataclass_from_dict(config_class(d.get("algo", registry.DEFAULT)), d)
 

@@ -306,7 +306,7 @@ def test_grid_passes_eval_budget_and_contacts_as_overrides(tmp_path, monkeypatch
     # each physics option reaches only the tasks of its domain
     physics = {"contacts": "all", "contact_cap": "none", "hand": "free"}
     cfg = grid.run_config(tmp_path, "drawer_open", "sac", (1,), "smoke", physics)
-    assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("floor", "task", "free")
+    assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("floor", "none", "free")
     cfg = grid.run_config(tmp_path, "cheetah_run", "sac", (1,), "smoke", physics)
     assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("all", "none", "arm")
 

@@ -90,9 +90,9 @@ def make_env(task_name: str, num_envs: int = 1, **task_options) -> VecEnv:
 
 @dataclasses.dataclass(frozen=True)
 class PhysicsOption:
-    """A run-config field that picks a port's physics, meaningful in one domain only."""
+    """A run-config field that picks a port's physics, meaningful in some domains only."""
 
-    domain: str
+    domains: tuple[str, ...]
     default: str  # the ports' default build (what `tasks.make(name)` caches)
     before: str  # what runs written before the option existed were trained on
     port_options: Callable[[str], dict]  # a non-default value -> the port's keyword options
@@ -101,32 +101,31 @@ class PhysicsOption:
 
 PHYSICS_OPTIONS = {
     "contacts": PhysicsOption(
-        "dm_control", "floor", "all", lambda value: {"contacts": value},
+        ("dm_control",), "floor", "all", lambda value: {"contacts": value},
         "--{name} {value}: only the DM Control ports have self-collision pairs to keep "
         "({task} has explicit pairs)"),
     "contact_cap": PhysicsOption(
-        "dm_control", "task", "none", lambda value: {"max_contacts": None},
-        "--{name} {value}: only the DM Control ports cap their contacts ({task} has explicit "
-        "pairs)"),
+        ("dm_control", "metaworld"), "task", "none", lambda value: {"max_contacts": None},
+        "--{name} {value}: only the DM Control and MetaWorld ports cap their MJX contacts"),
     # `free`: the free-hand ports' scene as it was, with the wrist box on every task
     "hand": PhysicsOption(
-        "metaworld", "arm", "free", lambda value: {"arm": False, "wrist": "box"},
+        ("metaworld",), "arm", "free", lambda value: {"arm": False, "wrist": "box"},
         "--{name} {value}: only the MetaWorld ports have a Sawyer hand"),
 }
 
 
 def task_options(cfg) -> dict:
     """The port options a run configuration asks for beyond the ports' defaults (so the
-    default build is the one `tasks.make(name)` caches): `contacts="all"` and
-    `max_contacts=None` (`contact_cap="none"`) on DM Control, `arm=False` (`hand="free"`) on
-    MetaWorld."""
+    default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control,
+    `arm=False` (`hand="free"`) on MetaWorld, `max_contacts=None` (`contact_cap="none"`) on
+    both."""
     domain = task_info(cfg.task).domain
     options = {}
     for name, option in PHYSICS_OPTIONS.items():
         value = getattr(cfg, name)
         if value == option.default:
             continue
-        if domain != option.domain:
+        if domain not in option.domains:
             raise ValueError(option.refusal.format(name=name, value=value, task=cfg.task))
         options.update(option.port_options(value))
     return options

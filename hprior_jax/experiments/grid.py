@@ -40,7 +40,7 @@ def run_config(root: Path, task: str, algo: str, seeds, budget: str,
     # a physics option applies to the tasks of its domain only (grids mix DMC and MetaWorld)
     domain = envs.task_info(task).domain
     overrides = {k: v for k, v in overrides.items()
-                 if k not in envs.PHYSICS_OPTIONS or envs.PHYSICS_OPTIONS[k].domain == domain}
+                 if k not in envs.PHYSICS_OPTIONS or domain in envs.PHYSICS_OPTIONS[k].domains}
     return presets.train_preset(task, algo, budget, seeds=tuple(seeds), out=out, **overrides)
 
 

@@ -133,6 +133,32 @@ def test_a_puck_pushed_off_the_table_lands_on_metaworlds_floor():
     np.testing.assert_allclose(port, theirs, atol=1e-3)
 
 
+def test_contact_cap_keeps_every_active_contact():
+    """sweep_into, the registered port (MJX keeps its 72 deepest contacts) against the
+    uncapped one, `forward` on reset states (the puck resting on the table): fewer slots,
+    the same active contacts and the same accelerations up to rounding."""
+    from tasks import physics
+
+    capped, full = tasks.make("sweep_into"), tasks.make("sweep_into", max_contacts=None)
+    assert capped.max_contacts == 72 and full.max_contacts is None
+    states = jax.jit(jax.vmap(capped.reset))(jax.random.split(jax.random.key(0), 4))
+
+    def forward(task):
+        fields = ("qpos", "qvel", "mocap_pos", "mocap_quat", "ctrl")
+        data = jax.vmap(lambda *x: mjx.make_data(task.model).replace(**dict(zip(fields, x))))(
+            *(getattr(states.data, f) for f in fields))
+        return jax.jit(jax.vmap(lambda d, i: physics.forward(task.model_for(i), d)))(
+            data, states.info)
+
+    a, b = forward(capped), forward(full)
+    dist = lambda d: np.asarray(d._impl.contact.dist - d._impl.contact.includemargin)
+    assert dist(a).shape[-1] == 72 < dist(b).shape[-1]
+    active = (dist(b) < 0).sum(-1)
+    assert active.min() >= 1, "the puck must rest on the table"
+    np.testing.assert_array_equal((dist(a) < 0).sum(-1), active)
+    np.testing.assert_allclose(np.asarray(a.qacc), np.asarray(b.qacc), rtol=1e-3, atol=1e-2)
+
+
 def test_kinematics_speed_guard():
     """jit(mjx.kinematics) on metaworld's *unchanged* drawer scene (14-deep arm) must take
     < 25 ms; without XLA_FLAGS=--xla_cpu_use_fusion_emitters=false it takes ~0.5 s. (Steady
