@@ -18,8 +18,10 @@ MuJoCo) and the arm's geoms (sawyer.py). Tried and not kept (same benchmark, 20 
 
 Speed (`python -m benchmarks.metaworld_throughput --tasks button_press`, batch 64): 385 env
 steps/s with the arm (460 with the free hand in the same run; the first port, claws x cap
-only, 1188 on 2026-12-01): misses issue 18's "at least half" (the 3 box-box wrist pairs and
-4 plane-box table pairs add ~34 contact slots to the first port's 16). The first port
+only, 1188 on 2026-12-01; the 3 box-box wrist pairs and 4 plane-box table pairs add ~34
+contact slots to the first port's 16). MJX's contact cap (`max_contacts = 18`, 2026-12-04)
+cuts the 50 slots to 36: 808 against 526 env steps/s uncapped in the same run (1.53x), and
+the same scripted episodes (return 579.0 against 579.1 uncapped). The first port
 pushed the button to -0.358 and through the success zone (success at step 500: 0% against
 100%).
 
