@@ -19,7 +19,7 @@ target. `--variant` picks the port's scene (see tasks/metaworld/sawyer.py): `arm
 metaworld's arm (the registered scene), `free` is the arm-less free hand of the first ports
 (with the wrist box on every task, as they had it). `--max-contacts K` builds the port with
 MJX's contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label
-`capK`); the port side also reports `contacts_active_max`, the most contacts of one condim
+`capK`; `--max-contacts none`: uncapped, label `uncapped`); the port side also reports `contacts_active_max`, the most contacts of one condim
 group active after any step, against `contact_slots`, and per group `contacts_by_condim`
 ("condim:most active/slots").
 
@@ -73,6 +73,16 @@ def make_task(name: str, variant: str | None = None, wrist: str | None = None, *
     elif variant == "free":
         kwargs["wrist"] = "box"  # the free-hand ports' (before the arm) on every task
     return cls(**kwargs)
+
+
+def contact_cap_option(value: str | None) -> tuple[dict, str | None]:
+    """`--max-contacts` (K, "none" or unset) as the port's constructor options and a label
+    part: `capK`, `uncapped` (MJX gives every candidate contact a slot) or None."""
+    if value is None:
+        return {}, None
+    if value == "none":
+        return {"max_contacts": None}, "uncapped"
+    return {"max_contacts": int(value)}, f"cap{int(value)}"
 
 
 def object_joint(model: mujoco.MjModel, name: str):
@@ -275,18 +285,17 @@ def main():
                    help="wrist collider: box, mesh (C only: port_c) or a number of hull points")
     p.add_argument("--keep-cylinders", action="store_true",
                    help="paired cylinders stay cylinders (C only: port_c)")
-    p.add_argument("--max-contacts", type=int, default=None,
-                   help="MJX contact cap per condim group (tasks.physics.with_max_contacts)")
+    p.add_argument("--max-contacts", default=None,
+                   help="MJX contact cap per condim group (tasks.physics.with_max_contacts), "
+                        "or none: every slot (label `uncapped`)")
     p.add_argument("--label", default=None, help="label of the port rows (default: variant)")
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args()
     warnings.filterwarnings("ignore", message="Constant")  # metaworld policies' p warnings
-    cap = args.max_contacts and f"cap{args.max_contacts}"
+    cap_options, cap = contact_cap_option(args.max_contacts)
     label = args.label or "-".join(x for x in (args.variant, args.wrist, args.keep_cylinders
                                                 and "cylinders", cap) if x) or "registered"
-    options = {"keep_cylinders": True} if args.keep_cylinders else {}
-    if args.max_contacts:
-        options["max_contacts"] = args.max_contacts
+    options = ({"keep_cylinders": True} if args.keep_cylinders else {}) | cap_options
     rows = []
     for name in args.tasks:
         task = (make_task(name, args.variant, args.wrist, **options)

@@ -86,13 +86,9 @@ def main():
                    help="MJX contact cap per condim group (tasks.physics.with_max_contacts), "
                         "or none: every slot (label `uncapped`)")
     args = p.parse_args()
-    from benchmarks.metaworld_dynamics import make_task
+    from benchmarks.metaworld_dynamics import contact_cap_option, make_task
 
-    options, cap = {}, None
-    if args.max_contacts is not None:
-        uncapped = args.max_contacts == "none"
-        options = {"max_contacts": None if uncapped else int(args.max_contacts)}
-        cap = "uncapped" if uncapped else f"cap{args.max_contacts}"
+    options, cap = contact_cap_option(args.max_contacts)
     label = (args.label or "-".join(x for x in (args.variant, args.wrist, cap) if x)
              or "registered")
     names = args.tasks or [n for n in TASKS if n in tasks.names()]

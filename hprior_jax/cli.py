@@ -359,8 +359,9 @@ def _grid(argv: list[str]) -> int:
                         help="DM Control physics, as `hprior train --contacts`; grids run "
                              "before 2026-12-02 were run with `all`")
     parser.add_argument("--contact-cap", default="task", choices=("task", "none"),
-                        help="DM Control physics, as `hprior train --contact-cap`; grids run "
-                             "before 2026-12-04 were run with `none`")
+                        help="MJX contact cap of the DM Control and MetaWorld ports, as "
+                             "`hprior train --contact-cap`; grids run before 2026-12-04 were "
+                             "run with `none`")
     parser.add_argument("--hand", default="arm", choices=("arm", "free"),
                         help="MetaWorld scene, as `hprior train --hand`; grids run before "
                              "this option were run with `free`")

@@ -57,7 +57,7 @@ WALK_SPEED = 0.5
 HEIGHT_STEP = 0.01  # dm_control's increment in _find_non_contacting_height
 # MJX's contact cap (tasks.physics.with_max_contacts): 35 candidate floor contacts; C MuJoCo
 # held at most 6 at once over 60 episodes of random, bang-bang and held actions
-# (`python -m benchmarks.env_profile --census-counts`); 8 steps 2.3x faster at batch 128
+# (`python -m benchmarks.env_profile --census-counts`); 8 steps 2.1x faster at batch 128
 MAX_CONTACTS = 8
 
 

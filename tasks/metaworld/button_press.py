@@ -70,7 +70,8 @@ class ButtonPress(SawyerTask):
     name = "button_press"
     # MJX keeps the 18 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 16 of its 18 condim-3 and 9 of its 32
-    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port`, 20 episodes)
+    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts
+    # none`, 20 episodes)
     max_contacts = 18
     scene = SceneSpec(
         xml="sawyer_button_press.xml",

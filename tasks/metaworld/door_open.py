@@ -30,7 +30,8 @@ class DoorOpen(SawyerTask):
     name = "door_open"
     # MJX keeps the 16 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 4 of its 4 condim-3 and 12 of its 24
-    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port`, 20 episodes)
+    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts
+    # none`, 20 episodes)
     max_contacts = 16
     scene = SceneSpec(
         xml="sawyer_door_pull.xml",

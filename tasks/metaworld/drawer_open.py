@@ -30,7 +30,7 @@ class DrawerOpen(SawyerTask):
     name = "drawer_open"
     # MJX keeps the 8 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 4 of its 24 (condim-4) slots active
-    # (`python -m benchmarks.metaworld_dynamics --sides port`, 20 episodes)
+    # (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts none`, 20 episodes)
     max_contacts = 8
     scene = SceneSpec(
         xml="sawyer_drawer.xml",

@@ -77,7 +77,7 @@ class SweepInto(SawyerTask):
     name = "sweep_into"
     # MJX keeps the 72 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 56 of its 104 (condim-4) slots active
-    # (`python -m benchmarks.metaworld_dynamics --sides port`, 20 episodes)
+    # (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts none`, 20 episodes)
     max_contacts = 72
     scene = SceneSpec(
         xml="sawyer_table_with_hole.xml",

@@ -43,7 +43,8 @@ class WindowOpen(SawyerTask):
     name = "window_open"
     # MJX keeps the 12 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 8 of its 10 condim-3 and 6 of its 24
-    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port`, 20 episodes)
+    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts
+    # none`, 20 episodes)
     max_contacts = 12
     scene = SceneSpec(
         xml="sawyer_window_horizontal.xml",
