@@ -62,6 +62,11 @@ class Task(abc.ABC):
     def step(self, state: TaskState, action: jax.Array) -> TaskState:
         """Apply `action` (in [-1, 1]^action_size, clipped) for one control step."""
 
+    def contacts_at_cap(self, data) -> jax.Array:
+        """bool[]: MJX's contact cap may have dropped contacts in `data` (see
+        `tasks.physics.contacts_at_cap`); never for a task without one."""
+        return jnp.zeros((), bool)
+
     def render_state(self, data) -> dict[str, jax.Array]:
         """What positions a rendered frame of physics state `data`: those of RENDER_FIELDS
         the model has (cheetah has no mocap bodies), traceable (the chunk records them for a

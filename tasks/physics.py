@@ -14,16 +14,19 @@ import io
 import threading
 
 import jax
+import jax.numpy as jnp
 import mujoco
+import numpy as np
 
 with contextlib.redirect_stdout(io.StringIO()):
     # mujoco.mjx prints "Failed to import warp" when the optional Warp backend is absent;
     # we only use the JAX backend, so the line is noise for our users.
     from mujoco import mjx  # noqa: E402
+from mujoco.mjx._src import collision_driver as _collision_driver  # noqa: E402
 from mujoco.mjx._src import solver as _mjx_solver  # noqa: E402
 
 __all__ = ["mjx", "step1", "step2", "legacy_substeps", "put_model", "solve", "forward", "step",
-           "linesearch_loop", "with_max_contacts"]
+           "linesearch_loop", "with_max_contacts", "max_contacts_of", "contacts_at_cap"]
 
 
 # -- the constraint solver's line search: a while loop, not a scan of ls_iterations ------
@@ -123,6 +126,20 @@ def max_contacts_of(model: mujoco.MjModel) -> int | None:
     """The contact cap MJX applies to `model` (`with_max_contacts`), None if uncapped."""
     i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, MAX_CONTACTS_NUMERIC)
     return None if i < 0 else int(model.numeric_data[model.numeric_adr[i]])
+
+
+def contacts_at_cap(m: mjx.Model, d: mjx.Data, max_contacts: int | None) -> jax.Array:
+    """bool[]: some condim group that the cap cut to `max_contacts` slots has all of them
+    active in `d`, i.e. MJX may have dropped shallower contacts (only the last collision
+    before `d` is seen; None: no cap, never)."""
+    if max_contacts is None or d._impl.contact.dist.shape[-1] == 0:
+        return jnp.zeros((), bool)
+    dims = _collision_driver.make_condim(m)  # static: the condim of every slot
+    c = d._impl.contact
+    active = c.dist - c.includemargin < 0
+    full = [jnp.all(active[dims == k]) for k in np.unique(dims)
+            if (dims == k).sum() == max_contacts]
+    return jnp.any(jnp.stack(full)) if full else jnp.zeros((), bool)
 
 
 def step1(m: mjx.Model, d: mjx.Data) -> mjx.Data:

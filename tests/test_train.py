@@ -123,6 +123,28 @@ def test_cli_writes_a_complete_run_directory(tmp_path, capsys):
     assert [int(r["step"]) for r in rows][-2:] == [80, 80]
 
 
+def test_a_full_contact_cap_is_logged_and_warned_once(tmp_path, capsys, monkeypatch):
+    """A task whose MJX contact cap is full (stood in for by the toy task) gets the share of
+    such steps per chunk in metrics.jsonl and one warning naming --contact-cap none."""
+    import jax.numpy as jnp
+
+    import tasks
+
+    monkeypatch.setattr(type(tasks.make("toy_point")), "contacts_at_cap",
+                        lambda self, data: data["pos"] > -jnp.inf)  # always, traced
+    out = tmp_path / "capped"
+    assert cli.main(["train", "--task", "toy_point", "--preset", "smoke", "--steps", "40",
+                     "--num-seed-steps", "20", "--chunk-steps", "20", "--eval-every", "40",
+                     "--num-eval-episodes", "1", "--sac.hidden-dim", "16", "--sac.batch-size",
+                     "8", "--seeds", "1", "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("warning: MJX's contact cap was full at 100.0% of steps 0-20") == 1
+    assert "--contact-cap none" in printed
+    records = [json.loads(l) for l in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["physics/contacts_at_cap"] for r in records if "physics/contacts_at_cap" in r
+            ] == [1.0, 1.0]
+
+
 def test_cli_unknown_task_lists_available(capsys):
     assert cli.main(["train", "--task", "nope", "--out", "/tmp/never"]) == 2
     assert "available tasks" in capsys.readouterr().err

@@ -142,6 +142,9 @@ class Engine:
                 "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),
                 "episode/true_return": tr.episode_return[0],
                 "episode/success": tr.episode_success[0],
+                # MJX's contact cap full at this step's end: contacts may have been dropped
+                "physics/contacts_at_cap": jax.vmap(self.task.contacts_at_cap)(
+                    env_state.task.data).any(),
             })
             return rs.replace(replay=buf, env=env_state, key=key), metrics
 

@@ -100,7 +100,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     has_success = engine.task.has_success
     last_ckpt = step
     bar = _ProgressBar(cfg.steps, step, progress and primary, len(seeds), has_success)
-    chunks = 0
+    chunks, warned_cap = 0, False
     events = set(engine.event_steps())
     own_interrupt = interrupt is None
     interrupt = interrupt or StopRequest()
@@ -143,6 +143,13 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                        if not k.startswith("train/") or k in keep}
             _finite_or_raise(metrics, step, step + length, seeds, run_dir, last_ckpt)
             _log_chunk(log, seeds, step, metrics, has_success)
+            at_cap = float(np.mean(metrics.get("physics/contacts_at_cap", 0.0)))
+            if at_cap and not warned_cap:  # once per run: the share is in metrics.jsonl
+                warned_cap = True
+                bar.write(f"warning: MJX's contact cap was full at {at_cap:.1%} of steps "
+                          f"{step}-{step + length}: contacts may have been dropped there "
+                          "(physics/contacts_at_cap in metrics.jsonl; --contact-cap none "
+                          "simulates every contact)")
             step += length
             chunks += 1
             if step % cfg.eval_every == 0 or step == cfg.steps:
@@ -298,7 +305,8 @@ def _log_chunk(log, seeds, step0: int, metrics: dict, has_success: bool) -> None
             if has_success:
                 ep["train/true_episode_success"] = metrics["episode/success"][i, t]
             log.log(step0 + int(t) + 1, s, ep)
-        losses = {k: float(np.mean(v[i])) for k, v in metrics.items() if k.startswith("train/")}
+        losses = {k: float(np.mean(v[i])) for k, v in metrics.items()
+                  if k.startswith(("train/", "physics/"))}
         if losses:
             log.log(step0 + done.shape[1], s, losses)
 

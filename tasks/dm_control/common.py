@@ -10,8 +10,8 @@ import mujoco
 import numpy as np
 
 from tasks.base import Task, TaskState
-from tasks.physics import (forward, legacy_substeps, max_contacts_of, mjx, put_model,
-                            with_max_contacts)
+from tasks.physics import (contacts_at_cap, forward, legacy_substeps, max_contacts_of, mjx,
+                            put_model, with_max_contacts)
 
 
 def load_suite_model(domain: str, max_contacts: int | None = None) -> mujoco.MjModel:
@@ -138,6 +138,9 @@ class DMControlTask(Task):
         """`n` zero-control substeps, as dm_control's `physics.step(nstep=n)` in resets."""
         data = data.replace(ctrl=jnp.zeros_like(data.ctrl))
         return legacy_substeps(self.model, data, n)
+
+    def contacts_at_cap(self, data: mjx.Data) -> jax.Array:
+        return contacts_at_cap(self.model, data, self.max_contacts)
 
     def forward(self, data: mjx.Data) -> mjx.Data:
         return forward(self.model, data)

@@ -75,7 +75,8 @@ import mujoco
 import numpy as np
 
 from tasks.base import Task, TaskState
-from tasks.physics import MAX_CONTACTS_NUMERIC, mjx, put_model, step as physics_step
+from tasks.physics import (MAX_CONTACTS_NUMERIC, contacts_at_cap, mjx, put_model,
+                            step as physics_step)
 
 FRAME_SKIP = 5
 EPISODE_LENGTH = 500  # SawyerXYZEnv.max_path_length
@@ -652,6 +653,9 @@ class SawyerTask(Task):
         goal = jnp.zeros(3) if self.partially_observable else goal
         obs = jnp.concatenate([curr, prev, goal]).astype(jnp.float32)
         return jnp.clip(obs, self._obs_low, self._obs_high)
+
+    def contacts_at_cap(self, data: mjx.Data) -> jax.Array:
+        return contacts_at_cap(self.model, data, self.max_contacts)
 
     def model_for(self, info: dict) -> mjx.Model:
         """The model with this episode's object placement (metaworld edits model.body_pos)."""

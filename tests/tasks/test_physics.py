@@ -126,6 +126,25 @@ def test_runs_before_the_hand_option_restore_with_the_free_hand():
 CAPPED = ["cheetah_run", "quadruped_walk"]
 
 
+def _forward(task, q):
+    return physics.forward(task.model, physics.mjx.make_data(task.model).replace(qpos=q))
+
+
+def _sunk_poses(task, n: int = 8, seed: int = 0) -> jax.Array:
+    """`n` poses of `task` with random joint angles, each sunk until its lowest point is
+    2-20 cm under the floor."""
+    m, rng = task.mj_model, np.random.RandomState(seed)
+    qpos = np.tile(m.qpos0, (n, 1))
+    for j in range(m.njnt):
+        if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and m.jnt_limited[j]:
+            qpos[:, m.jnt_qposadr[j]] = rng.uniform(*m.jnt_range[j], size=n)
+    free = m.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
+    z = int(m.jnt_qposadr[0]) + 2 if free else int(m.jnt_qposadr[m.joint("rootz").id])
+    lowest = jax.jit(jax.vmap(lambda q: _forward(task, q)._impl.contact.dist.min()))
+    q = jnp.asarray(qpos, jnp.float32)
+    return q.at[:, z].add(-lowest(q) - jnp.asarray(rng.uniform(0.02, 0.2, size=n), q.dtype))
+
+
 @pytest.mark.parametrize("name", CAPPED)
 def test_contact_cap_keeps_every_active_contact(name):
     """The capped port (the default) and the uncapped one, `forward` on 8 poses sunk 2-20 cm
@@ -134,30 +153,29 @@ def test_contact_cap_keeps_every_active_contact(name):
     against dm_control: the parity tests in test_dm_control_tasks.py run the capped ports.)"""
     capped, full = tasks.make(name), tasks.make(name, max_contacts=None)
     assert capped.max_contacts is not None and full.max_contacts is None
-    m = capped.mj_model
-    rng = np.random.RandomState(0)
-    qpos = np.tile(m.qpos0, (8, 1))
-    hinges = [m.jnt_qposadr[j] for j in range(m.njnt) if m.jnt_type[j] == 3 and m.jnt_limited[j]]
-    for i, j in enumerate(j for j in range(m.njnt) if m.jnt_type[j] == 3 and m.jnt_limited[j]):
-        qpos[:, hinges[i]] = rng.uniform(*m.jnt_range[j], size=8)
-    free = m.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
-    z = int(m.jnt_qposadr[0]) + 2 if free else int(m.jnt_qposadr[m.joint("rootz").id])
-
-    def forward(task, q):
-        d = physics.mjx.make_data(task.model).replace(qpos=q)
-        return physics.forward(task.model, d)
-
-    # sink each pose until its lowest point is 2-20 cm under the floor
-    lowest = jax.jit(jax.vmap(lambda q: forward(full, q)._impl.contact.dist.min()))
-    q = jnp.asarray(qpos, jnp.float32)
-    q = q.at[:, z].add(-lowest(q) - jnp.asarray(rng.uniform(0.02, 0.2, size=8), q.dtype))
-    a, b = (jax.jit(jax.vmap(lambda q, t=t: forward(t, q)))(q) for t in (capped, full))
+    q = _sunk_poses(full)
+    a, b = (jax.jit(jax.vmap(lambda q, t=t: _forward(t, q)))(q) for t in (capped, full))
     assert a._impl.contact.dist.shape[-1] == capped.max_contacts < b._impl.contact.dist.shape[-1]
     active_a, active_b = (np.asarray(d._impl.contact.dist < 0).sum(-1) for d in (a, b))
     assert active_b.max() >= 3, "the poses must make several contacts"
     assert active_b.max() <= capped.max_contacts
     np.testing.assert_array_equal(active_a, active_b)
     np.testing.assert_allclose(np.asarray(a.qacc), np.asarray(b.qacc), rtol=1e-3, atol=1e-2)
+    assert not np.any(jax.jit(jax.vmap(capped.contacts_at_cap))(a)), "the cap was not full"
+    assert not np.any(jax.jit(jax.vmap(full.contacts_at_cap))(b)), "no cap, never full"
+
+
+def test_contacts_at_cap_flags_a_full_cap():
+    """cheetah with a cap of 2 on the sunk poses: flagged exactly where 2 or more contacts
+    are active (then the deepest 2 fill the slots and any others are dropped)."""
+    full, tight = tasks.make("cheetah_run", max_contacts=None), tasks.make("cheetah_run",
+                                                                          max_contacts=2)
+    q = _sunk_poses(full)
+    active = np.asarray(jax.jit(jax.vmap(lambda q: (_forward(full, q)._impl.contact.dist < 0)
+                                         .sum()))(q))
+    flagged = np.asarray(jax.jit(jax.vmap(lambda q: tight.contacts_at_cap(_forward(tight, q))))(q))
+    assert active.min() < 2 <= active.max(), active
+    np.testing.assert_array_equal(flagged, active >= 2)
 
 
 def test_contact_cap_numeric():
