@@ -129,9 +129,9 @@ def max_contacts_of(model: mujoco.MjModel) -> int | None:
 
 
 def contacts_at_cap(m: mjx.Model, d: mjx.Data, max_contacts: int | None) -> jax.Array:
-    """bool[]: some condim group that the cap cut to `max_contacts` slots has all of them
-    active in `d`, i.e. MJX may have dropped shallower contacts (only the last collision
-    before `d` is seen; None: no cap, never)."""
+    """bool[]: some condim group with `max_contacts` slots (the cap's, or exactly that many
+    candidates: then a false alarm) has all of them active in `d`, i.e. MJX may have dropped
+    shallower contacts (only the last collision before `d` is seen; None: no cap, never)."""
     if max_contacts is None or d._impl.contact.dist.shape[-1] == 0:
         return jnp.zeros((), bool)
     dims = _collision_driver.make_condim(m)  # static: the condim of every slot
