@@ -42,6 +42,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import mujoco
+from mujoco.mjx._src.collision_driver import make_condim
 import numpy as np
 
 from benchmarks._timing import read_rows, write_rows
@@ -223,7 +224,8 @@ def run_port(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> d
     ret = np.zeros(episodes)
     first = [None] * episodes
     lo, hi = np.full(episodes, np.inf), np.full(episodes, -np.inf)
-    lag, active_max = [], {}
+    dims = make_condim(task.model)  # the condim of every contact slot
+    lag, active_max = [], {k: 0 for k in np.unique(dims)}
     for t in range(steps):
         obs = _policy_obs(task, name, st.obs, st.info)
         act = np.stack([np.clip(policy.get_action(o), -1, 1) for o in obs]).astype(np.float32)
@@ -236,9 +238,8 @@ def run_port(task, name: str, episodes: int, seed: int, steps: int = STEPS) -> d
         data = st.data
         contact = data._impl.contact  # active at the step's last substep, per condim group
         active = np.asarray(contact.dist - contact.includemargin < 0)
-        dims = np.asarray(contact.dim[0]) if contact.dim.ndim > 1 else np.asarray(contact.dim)
-        for k in np.unique(dims):
-            active_max[k] = max(active_max.get(k, 0), int(active[:, dims == k].sum(1).max()))
+        for k in active_max:
+            active_max[k] = max(active_max[k], int(active[:, dims == k].sum(1).max()))
         lag.extend(np.linalg.norm(np.asarray(data.xpos[:, hand_id])
                                   - np.asarray(data.mocap_pos[:, mocap_id]), axis=1))
         if qadr is not None:
