@@ -12,7 +12,17 @@ flax, optax, chex, orbax and torch, and no package registry. This writes:
 - `.gpu/run.sh`: sourced at the start of the command there, it installs the wheels and sets
   PYTHONPATH and MUJOCO_GL.
 Then, there: `source .gpu/run.sh && python3 -m benchmarks.gpu_suite --parts ... --out $OUT`.
-`.gpu/` is git-ignored.
+
+    python -m benchmarks.gpu_carry --warp       # also MJX-Warp's warp-lang, in two halves
+
+MJX-Warp (`benchmarks/mjx_warp.py`) needs warp-lang, whose wheel (149 MB) no call can carry.
+Without its CPU compiler, examples and tests it packs into a 76 MB tar.xz, split into
+`.gpu_warp/a/` and `.gpu_warp/b/`; three calls in a row on the warm machine (it is given
+back 30 s after a call) bring it there: carry `.gpu_warp/a` with
+`mkdir -p /tmp/wp && cp .gpu_warp/a/* /tmp/wp/`, then `.gpu_warp/b` with
+`cat /tmp/wp/* .gpu_warp/b/* | python3 -m benchmarks.gpu_carry --unpack /tmp/wsite`, then
+`.gpu` as above (run.sh puts /tmp/wsite on PYTHONPATH). `.gpu/` and `.gpu_warp/` are
+git-ignored.
 """
 from __future__ import annotations
 
@@ -20,6 +30,8 @@ import argparse
 import shutil
 import subprocess
 import sys
+import tarfile
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -34,8 +46,11 @@ RUN_SH = """\
 # sourced on the GPU machine, from the repository root (benchmarks/gpu_carry.py wrote it)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \\
     --target /tmp/site .gpu/whl/*.whl || return 1
-export PYTHONPATH=$PWD:$PWD/.gpu/site:/tmp/site MUJOCO_GL=disable PYTHONUNBUFFERED=1
+export PYTHONPATH=$PWD:$PWD/.gpu/site:/tmp/site:/tmp/wsite MUJOCO_GL=disable PYTHONUNBUFFERED=1
 """
+WARP_VERSION = "1.19.0"  # not a project dependency: MJX-Warp's benchmark only
+# what a GPU machine does not need: the CPU backend's compiler (69 MB), examples, tests
+WARP_DROP = ("warp/bin/warp-clang.so", "warp/examples", "warp/tests")
 
 
 def locked_version(name: str) -> str:
@@ -68,6 +83,38 @@ def slim_dm_control(dest: Path) -> None:
         shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
 
 
+def pack_warp(dest: Path) -> None:
+    """warp-lang's wheel, less WARP_DROP, as a tar.xz in two halves: dest/a/part, dest/b/part."""
+    import zipfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps",
+                        "--only-binary=:all:", "--python-version", "3.12", "--implementation",
+                        "cp", *[a for p in PLATFORMS for a in ("--platform", p)], "-d", tmp,
+                        f"warp-lang=={WARP_VERSION}"], check=True)
+        packed = Path(tmp) / "warp.tar.xz"
+        with zipfile.ZipFile(next(Path(tmp).glob("warp_lang-*.whl"))) as wheel, \
+                tarfile.open(packed, "w:xz", preset=9) as tar:
+            for info in wheel.infolist():
+                if info.is_dir() or any(info.filename.startswith(d) for d in WARP_DROP):
+                    continue
+                member = tarfile.TarInfo(info.filename)
+                member.size, member.mode = info.file_size, 0o755
+                with wheel.open(info) as f:
+                    tar.addfile(member, f)
+        data = packed.read_bytes()
+    half = len(data) // 2 + 1
+    for name, part in (("a", data[:half]), ("b", data[half:])):
+        (dest / name).mkdir(parents=True, exist_ok=True)
+        (dest / name / "part").write_bytes(part)
+
+
+def unpack_warp(target: Path) -> None:
+    """The halves, concatenated on stdin, unpacked into `target` (on the GPU machine)."""
+    with tarfile.open(fileobj=sys.stdin.buffer, mode="r|xz") as tar:
+        tar.extractall(target, filter="data")
+
+
 def size_mib(path: Path) -> float:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
 
@@ -75,7 +122,16 @@ def size_mib(path: Path) -> float:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--dest", type=Path, default=ROOT / ".gpu")
+    p.add_argument("--warp", action="store_true", help="also pack warp-lang into .gpu_warp/")
+    p.add_argument("--unpack", type=Path, default=None,
+                   help="on the GPU machine: unpack warp-lang from stdin into this folder")
     args = p.parse_args(argv)
+    if args.unpack:
+        unpack_warp(args.unpack)
+        return 0
+    if args.warp:
+        pack_warp(ROOT / ".gpu_warp")
+        print(f".gpu_warp: {size_mib(ROOT / '.gpu_warp'):.1f} MiB in two halves")
     download_wheels(args.dest / "whl")
     slim_dm_control(args.dest / "site")
     (args.dest / "run.sh").write_text(RUN_SH)

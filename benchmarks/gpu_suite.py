@@ -3,21 +3,25 @@
     python -m benchmarks.gpu_suite                 # on the GPU machine: the sizes below
     python -m benchmarks.gpu_suite --scale tiny    # anywhere, in a few minutes (its test)
 
-On an H200 (2026-12-04) the parts took env 321 s, sac 71 s, world_model 263 s, reward 28 s:
-more than one 10-minute command, so run them in two (`--parts env` then the rest); each part
-writes its CSV and suite.csv as it ends. On a machine with its own jax and no registry,
-`python -m benchmarks.gpu_carry` packs what it lacks (results/gpu_suite/gpu_NVIDIA_H200/).
+On an H200 (2026-12-04) the parts took env 321 s, sac 71 s, world_model 263 s, reward 28 s
+and, in a second lease, end_to_end 206 s: more than one 10-minute command, so run them in
+parts (`--parts env`, then the updates, then end_to_end); each part writes its CSV and
+suite.csv as it ends. On a machine with its own jax and no registry, `python -m
+benchmarks.gpu_carry` packs what it lacks (results/gpu_suite/gpu_NVIDIA_H200/).
 
 Each part calls the single-purpose benchmark that owns the measurement, on the default JAX
 device (the GPU when JAX sees one):
 - `env`: MJX env steps/s of cheetah_run and quadruped_walk at batch 1k, 4k and 16k
-  (`env_throughput.mjx_throughput`: a scan of vmapped steps, compile timed apart);
+  (`env_throughput.mjx_throughput`: a scan of vmapped steps, compile timed apart), with the
+  ports' contact caps (`--env-caps task none` adds the uncapped ports);
 - `sac`, `reward`, `world_model`: update times at the appendix's sizes, vmapped over 1 and 5
   seeds, beside the same update in PyTorch on CUDA when torch sees a GPU (on its CPU
   otherwise; skipped without torch);
 - `end_to_end`: one 5-seed PEBBLE run of the reduced preset on cheetah_run, cut to
   `--e2e-steps` steps (20k: three feedback rounds; an `hprior train` child with an empty
   compilation cache).
+`--keep DIR` keeps the end-to-end run's folder and log (a lease can end mid-run). MJX-Warp
+against MJX-JAX is `benchmarks/mjx_warp.py`, apart (it needs warp-lang: `gpu_carry --warp`).
 The rows carry the device's name; the CSVs go to benchmarks/results/gpu_suite/<device>/
 (or --out), with `suite.csv` holding every part's wall seconds.
 """
@@ -38,13 +42,13 @@ SCALES = {  # what each part measures at each scale
     # the cheapest and the most expensive DMC port; PEBBLE's first feedback rounds fall at
     # steps 10k, 14k and 18k of the reduced preset
     "full": dict(env_tasks=("cheetah_run", "quadruped_walk"), env_batches=(1024, 4096, 16384),
-                 env_steps=100, repeats=2, seeds=(1, 5), sac_updates=20, reward_pairs=1024,
-                 wm_sizes=("reduced", "paper"), wm_updates=3, e2e_task="cheetah_run",
-                 e2e_algo="pebble", e2e_preset="reduced", e2e_seeds=5, e2e_steps=20_000,
-                 e2e_args=()),
+                 env_steps=100, env_caps=("task",), repeats=2, seeds=(1, 5), sac_updates=20,
+                 reward_pairs=1024, wm_sizes=("reduced", "paper"), wm_updates=3,
+                 e2e_task="cheetah_run", e2e_algo="pebble", e2e_preset="reduced", e2e_seeds=5,
+                 e2e_steps=20_000, e2e_args=()),
     # every code path once, at sizes a 2-core CPU runs in about two minutes
-    "tiny": dict(env_tasks=("cheetah_run",), env_batches=(2,), env_steps=5, repeats=1,
-                 seeds=(1,), sac_updates=2, reward_pairs=64, wm_sizes=("reduced",),
+    "tiny": dict(env_tasks=("cheetah_run",), env_batches=(2,), env_steps=5, env_caps=("task",),
+                 repeats=1, seeds=(1,), sac_updates=2, reward_pairs=64, wm_sizes=("reduced",),
                  wm_updates=1, e2e_task="cheetah_run", e2e_algo="sac", e2e_preset="smoke",
                  e2e_seeds=2, e2e_steps=20,
                  e2e_args=("--num-seed-steps", "10", "--sac.batch-size", "8", "--chunk-steps",
@@ -73,16 +77,19 @@ def torch_device() -> str | None:
 
 
 def env_rows(s: dict) -> list[dict]:
+    """Per task, contact cap ("task": the port's default; "none": a slot for every candidate
+    contact) and batch."""
     import tasks as registry
 
     from benchmarks.env_throughput import mjx_throughput
 
     rows = []
-    for name in s["env_tasks"]:
-        task = registry.make(name)  # the port's default physics options
+    for name, cap in ((n, c) for n in s["env_tasks"] for c in s["env_caps"]):
+        task = registry.make(name, **({"max_contacts": None} if cap == "none" else {}))
         for batch in s["env_batches"]:
             compile_s, run_s = mjx_throughput(task, batch, s["env_steps"], s["repeats"])
-            rows.append({"task": name, "batch": batch, "compile_s": compile_s,
+            rows.append({"task": name, "contact_cap": task.max_contacts, "batch": batch,
+                         "compile_s": compile_s,
                          "env_steps_per_s": batch * s["env_steps"] / run_s})
     return rows
 
@@ -123,12 +130,17 @@ def update_rows(part: str, s: dict, torch_on: str | None) -> list[dict]:
     return rows
 
 
-def end_to_end_rows(s: dict, device: str) -> list[dict]:
+def end_to_end_rows(s: dict, device: str, keep: Path | None) -> list[dict]:
+    """`keep`: the run's folder and log stay there (a lease can end mid-run) instead of in a
+    temporary folder."""
     from benchmarks.end_to_end import one_run
 
+    if keep:
+        keep.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as work:
         row = one_run(s["e2e_task"], s["e2e_algo"], s["e2e_seeds"], s["e2e_preset"],
-                      s["e2e_steps"], Path(work), device=device, extra_args=s["e2e_args"])
+                      s["e2e_steps"], keep or Path(work), device=device,
+                      extra_args=s["e2e_args"])
     return [row]
 
 
@@ -137,12 +149,18 @@ def main(argv=None) -> int:
     p.add_argument("--scale", default="full", choices=list(SCALES))
     p.add_argument("--parts", nargs="+", default=list(PARTS), choices=list(PARTS))
     p.add_argument("--e2e-steps", type=int, default=None, help="override the scale's")
+    p.add_argument("--keep", type=Path, default=None,
+                   help="folder for the end-to-end run's output (default: a temporary one)")
+    for key, kind in (("env_tasks", str), ("env_batches", int), ("env_steps", int),
+                      ("env_caps", str)):
+        p.add_argument("--" + key.replace("_", "-"), nargs="+" if key != "env_steps" else None,
+                       type=kind, default=None, help="override the scale's")
     p.add_argument("--out", type=Path, default=None,
                    help="folder for the CSVs (default benchmarks/results/gpu_suite/<device>)")
     args = p.parse_args(argv)
     s = dict(SCALES[args.scale])
-    if args.e2e_steps is not None:
-        s["e2e_steps"] = args.e2e_steps
+    s.update({k: v for k, v in vars(args).items()
+              if v is not None and k in s and k != "scale"})
     import jax
 
     device = device_name()
@@ -156,7 +174,7 @@ def main(argv=None) -> int:
         if part == "env":
             rows = env_rows(s)
         elif part == "end_to_end":
-            rows = end_to_end_rows(s, "gpu" if on_gpu else "cpu")
+            rows = end_to_end_rows(s, "gpu" if on_gpu else "cpu", args.keep)
         else:
             rows = update_rows(part, s, torch_on)
         elapsed = time.perf_counter() - t0

@@ -73,9 +73,9 @@ def test_op_profile_maps_xla_ops_to_their_jax_source():
     assert source_of("jit(run)/jvp(M)/layers/Dropout_0/select_n") == ("fwd", "dropout (apply mask)")
 
 
-def _gpu_suite_tiny(out, parts):
-    """`python -m benchmarks.gpu_suite --scale tiny --parts ...` in a child (the suite sets
-    PyTorch's default device) -> {part: rows}."""
+def _gpu_suite_tiny(out, parts, extra=()):
+    """`python -m benchmarks.gpu_suite --scale tiny --parts ... [extra]` in a child (the suite
+    sets PyTorch's default device) -> {part: rows}."""
     import csv
     import os
     import subprocess
@@ -84,7 +84,7 @@ def _gpu_suite_tiny(out, parts):
 
     root = Path(__file__).resolve().parent.parent
     done = subprocess.run([sys.executable, "-m", "benchmarks.gpu_suite", "--scale", "tiny",
-                           "--parts", *parts, "--out", str(out)], cwd=root, capture_output=True,
+                           "--parts", *parts, "--out", str(out), *extra], cwd=root, capture_output=True,
                           text=True, env=dict(os.environ, PYTHONPATH=str(root)), timeout=900)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     read = lambda name: list(csv.DictReader(open(out / f"{name}.csv", newline="")))
@@ -96,9 +96,27 @@ def _gpu_suite_tiny(out, parts):
 
 
 def test_gpu_suite_measures_env_throughput_at_tiny_sizes_on_cpu(tmp_path):
-    """The GPU suite's driver and its env part on a CPU (its other parts: the slow tests)."""
-    rows = _gpu_suite_tiny(tmp_path, ("env",))
-    assert float(rows["env"][0]["env_steps_per_s"]) > 0
+    """The GPU suite's driver and its env part on a CPU (its other parts: the slow tests),
+    with and without the port's contact cap."""
+    rows = _gpu_suite_tiny(tmp_path, ("env",), ("--env-caps", "task", "none"))["env"]
+    assert [r["contact_cap"] for r in rows] == ["8", ""]  # cheetah's cap, then none
+    assert all(float(r["env_steps_per_s"]) > 0 for r in rows)
+
+
+def test_mjx_warp_benchmark_steps_like_c_mujoco(tmp_path):
+    """benchmarks.mjx_warp on the JAX side alone (warp-lang is not a dependency): the port's
+    model under `mjx.step` follows C MuJoCo's `mj_step` from the same states and controls."""
+    import csv
+
+    from benchmarks import mjx_warp
+
+    out = tmp_path / "mjx_warp.csv"
+    mjx_warp.main(["--tasks", "cheetah_run", "--batch", "2", "--steps", "2", "--repeats", "1",
+                   "--impls", "jax", "--parity", "2", "--out", str(out)])
+    (row,) = list(csv.DictReader(open(out, newline="")))
+    assert row["impl"] == "jax" and float(row["substeps_per_s"]) > 0
+    # float32 MJX against float64 C: 2e-7 after one control step, 5e-7 after ten (measured)
+    assert float(row["jax_qpos_err_1"]) < 1e-5 and float(row["jax_qpos_err_10"]) < 1e-4
 
 
 @pytest.mark.slow  # CI time: 4 min here (the appendix-size updates and their references)
