@@ -54,6 +54,18 @@ def perf_totals(metrics_file: Path, first_seed: int) -> dict:
     return {"steps": steps, **{p: totals[p] for p in PARTS}}
 
 
+def perf_rows(metrics_file: Path, first_seed: int) -> list[dict]:
+    """Every step's `perf/*` values (one seed's rows): where a run's time went, chunk by chunk."""
+    rows = []
+    with open(metrics_file) as f:
+        for line in f:
+            rec = json.loads(line)
+            perf = {k.split("/", 1)[1]: v for k, v in rec.items() if k.startswith("perf/")}
+            if rec.get("seed") == first_seed and perf:
+                rows.append({"step": rec.get("step"), **perf})
+    return rows
+
+
 def first_record(metrics_file: Path, key: str) -> float:
     """The first value of `key` in the run's metrics (nan if never logged)."""
     with open(metrics_file) as f:

@@ -13,6 +13,9 @@ LOOP:CONTACTS[:CAP] ...` times each batch once per combination, in the same run:
 `floor` (the ports' default) or `all` (dm_control's self-collision pairs kept; DM Control
 only), CAP `task` (the port's MJX contact cap, the default) or `none` (a slot for every
 candidate contact; DM Control only). Default: the ports' defaults, `while:floor:task`.
+`--groups none 16 ...` times each combination once per batching layout: `none` one vmap of the
+whole batch, G the batch stepped as vmapped groups of G in turn (`tasks.batching`; `auto`:
+the layout `hprior_jax.envs.VecEnv` picks on this backend, the default).
 Writes benchmarks/results/env_throughput.csv and prints a table.
 """
 from __future__ import annotations
@@ -26,7 +29,7 @@ from pathlib import Path
 from typing import Callable
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-from tasks import physics
+from tasks import batching, physics
 
 import jax
 import numpy as np
@@ -62,15 +65,18 @@ REFERENCES: dict[str, Callable[[str, int, int], float]] = {
 
 
 # -- MJX --------------------------------------------------------------------------------
-def mjx_throughput(task, batch: int, n_steps: int, repeats: int, seed: int = 0):
-    """(compile_s, best run_s) of `n_steps` vmapped steps at `batch`."""
+def mjx_throughput(task, batch: int, n_steps: int, repeats: int, seed: int = 0,
+                   group: int | None = None):
+    """(compile_s, best run_s) of `n_steps` vmapped steps at `batch` (in groups of `group`:
+    `tasks.batching.vmap_in_groups`)."""
+    step = batching.vmap_in_groups(task.step, group)
 
     def rollout(state, key):
         def body(carry, _):
             state, key = carry
             key, sub = jax.random.split(key)
             action = jax.random.uniform(sub, (batch, task.action_size), minval=-1, maxval=1)
-            state = jax.vmap(task.step)(state, action)
+            state = step(state, action)
             return (state, key), state.true_reward
         (state, _), rewards = jax.lax.scan(body, (state, key), None, length=n_steps)
         return state, rewards
@@ -109,6 +115,9 @@ def main(argv=None):
                         help="LOOP:CONTACTS[:CAP] to time: line-search loop while|scan "
                              "(tasks.physics.linesearch_loop), contacts floor|all and contact "
                              "cap task|none (DM Control)")
+    parser.add_argument("--groups", nargs="+", default=["auto"],
+                        help="batching layouts: none (one vmap), auto (VecEnv's on this "
+                             "backend) or a group size (tasks.batching)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
@@ -116,18 +125,23 @@ def main(argv=None):
     rows = []
     for name in args.tasks:
         ref = REFERENCES[tasks.info(name).domain](name, args.ref_steps, 0)
-        for batch, variant in ((b, v) for b in args.batch for v in args.variants):
+        for batch, variant, layout in ((b, v, g) for b in args.batch for v in args.variants
+                                       for g in args.groups):
+            group = (None if layout == "none" else
+                     batching.default_group() if layout == "auto" else int(layout))
             loop, contacts, cap = (variant.split(":") + ["task"])[:3]
             options = {}
             if tasks.info(name).domain == "dm_control":
                 options = {"contacts": contacts} | ({"max_contacts": None} if cap == "none" else {})
             task = tasks.make(name, **options)
             with physics.linesearch_loop(loop):
-                compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats)
+                compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats,
+                                                  group=group)
             sps = batch * args.steps / run_s
             rows.append(dict(
                 task=name, batch=batch, linesearch=loop, contacts=contacts,
-                contact_cap=getattr(task, "max_contacts", None), steps=args.steps,
+                contact_cap=getattr(task, "max_contacts", None),
+                group=batching.group_size(batch, group) or batch, steps=args.steps,
                 n_sub_steps=task.n_sub_steps,
                 compile_s=round(compile_s, 2), run_s=round(run_s, 4),
                 mjx_env_steps_per_s=round(sps, 1),
@@ -142,7 +156,7 @@ def main(argv=None):
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    cols = ["task", "batch", "linesearch", "contacts", "contact_cap", "compile_s",
+    cols = ["task", "batch", "group", "linesearch", "contacts", "contact_cap", "compile_s",
             "mjx_env_steps_per_s", "ref_env_steps_per_s", "c_over_mjx"]
     print("\n" + " | ".join(f"{c:>20}" for c in cols))
     for r in rows:

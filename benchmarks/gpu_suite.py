@@ -130,18 +130,20 @@ def update_rows(part: str, s: dict, torch_on: str | None) -> list[dict]:
     return rows
 
 
-def end_to_end_rows(s: dict, device: str, keep: Path | None) -> list[dict]:
-    """`keep`: the run's folder and log stay there (a lease can end mid-run) instead of in a
-    temporary folder."""
-    from benchmarks.end_to_end import one_run
+def end_to_end_rows(s: dict, device: str, keep: Path | None) -> tuple[list[dict], list[dict]]:
+    """(the run's totals, its `perf/*` rows chunk by chunk). `keep`: the run's folder and log
+    stay there (a lease can end mid-run) instead of in a temporary folder."""
+    from benchmarks.end_to_end import SEEDS, one_run, perf_rows
 
     if keep:
         keep.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as work:
+        work = keep or Path(work)
         row = one_run(s["e2e_task"], s["e2e_algo"], s["e2e_seeds"], s["e2e_preset"],
-                      s["e2e_steps"], keep or Path(work), device=device,
-                      extra_args=s["e2e_args"])
-    return [row]
+                      s["e2e_steps"], work, device=device, extra_args=s["e2e_args"])
+        chunks = perf_rows(work / f"{s['e2e_algo']}_{s['e2e_seeds']}" / "metrics.jsonl",
+                           SEEDS[0])
+    return [row], chunks
 
 
 def main(argv=None) -> int:
@@ -174,7 +176,8 @@ def main(argv=None) -> int:
         if part == "env":
             rows = env_rows(s)
         elif part == "end_to_end":
-            rows = end_to_end_rows(s, "gpu" if on_gpu else "cpu", args.keep)
+            rows, chunks = end_to_end_rows(s, "gpu" if on_gpu else "cpu", args.keep)
+            write_rows(chunks, out / "end_to_end_chunks.csv")
         else:
             rows = update_rows(part, s, torch_on)
         elapsed = time.perf_counter() - t0
