@@ -127,13 +127,12 @@ def main(argv=None):
         ref = REFERENCES[tasks.info(name).domain](name, args.ref_steps, 0)
         for batch, variant, layout in ((b, v, g) for b in args.batch for v in args.variants
                                        for g in args.groups):
-            group = (None if layout == "none" else
-                     batching.default_group() if layout == "auto" else int(layout))
             loop, contacts, cap = (variant.split(":") + ["task"])[:3]
             options = {}
             if tasks.info(name).domain == "dm_control":
                 options = {"contacts": contacts} | ({"max_contacts": None} if cap == "none" else {})
             task = tasks.make(name, **options)
+            group = batching.group_from_option(layout, task)
             with physics.linesearch_loop(loop):
                 compile_s, run_s = mjx_throughput(task, batch, args.steps, args.repeats,
                                                   group=group)

@@ -12,7 +12,9 @@ the registered one and labels the rows with it (column `scene`). `--linesearch s
 MJX's own line-search loop instead of the ports' while loop (tasks/physics.py; column
 `linesearch`), the reference for that change. `--max-contacts K` builds the port with MJX's
 contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; label `capK`),
-`--max-contacts none` without one (label `uncapped`).
+`--max-contacts none` without one (label `uncapped`). `--group G|none|auto` steps the batch as
+vmapped groups of G in turn (`tasks.batching`; none: one vmap; auto, the default: what
+`hprior_jax.envs.VecEnv` does on this backend; column `group`).
 """
 from __future__ import annotations
 
@@ -27,15 +29,15 @@ import jax
 import numpy as np
 
 from benchmarks._timing import read_rows, write_rows
-from tasks import physics
+from tasks import batching, physics
 from tasks.metaworld.reference import make_env, metaworld_version
 
 TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_throughput.csv")
 
 
-def mjx_rate(task, batch: int, steps: int, repeats: int):
-    step = jax.vmap(task.step)
+def mjx_rate(task, batch: int, steps: int, repeats: int, group: int | None = None):
+    step = batching.vmap_in_groups(task.step, group)
 
     @jax.jit
     def rollout(state, key):
@@ -85,6 +87,8 @@ def main():
     p.add_argument("--max-contacts", default=None,
                    help="MJX contact cap per condim group (tasks.physics.with_max_contacts), "
                         "or none: every slot (label `uncapped`)")
+    p.add_argument("--group", default="auto",
+                   help="batching: a group size, none (one vmap) or auto (VecEnv's layout)")
     args = p.parse_args()
     from benchmarks.metaworld_dynamics import contact_cap_option, make_task
 
@@ -95,10 +99,12 @@ def main():
     rows = []
     for name in names:
         task = make_task(name, args.variant, args.wrist, **options)
+        group = batching.group_from_option(args.group, task)
         m = task.mj_model
         with physics.linesearch_loop(args.linesearch):
-            rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats)
+            rate, compile_s = mjx_rate(task, args.batch, args.steps, args.repeats, group)
         row = dict(task=name, scene=label, linesearch=args.linesearch, batch=args.batch,
+                   group=batching.group_size(args.batch, group) or args.batch,
                    scan_steps=args.steps,
                    mjx_env_steps_per_s=round(rate, 1), mjx_substeps_per_s=round(5 * rate, 1),
                    compile_s=round(compile_s, 1),
@@ -108,7 +114,9 @@ def main():
                    jax=jax.__version__, mujoco=__import__("mujoco").__version__)
         print(row, flush=True)
         rows.append(row)
-    rerun = lambda r: (r["task"] in names and r["batch"] == str(args.batch)
+    measured = {(row["task"], str(row["group"])) for row in rows}
+    rerun = lambda r: ((r["task"], r.get("group") or r["batch"]) in measured
+                       and r["batch"] == str(args.batch)
                        and r.get("scene", "registered") == label
                        and (r.get("linesearch") or "scan") == args.linesearch)
     write_rows(rows, Path(args.out), keep=[r for r in read_rows(Path(args.out)) if not rerun(r)])

@@ -31,7 +31,6 @@ from benchmarks._timing import write_rows
 from tasks import physics
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 

@@ -53,6 +53,9 @@ class Task(abc.ABC):
     control_timestep: float = 0.0  # seconds of simulated time per control step
     has_success: bool = False  # MetaWorld tasks define success; DM Control tasks do not
     domain: str = ""  # "dm_control" or "metaworld": selects per-domain presets
+    # on CPU, many envs of this task step as vmapped groups of this size (tasks/batching.py);
+    # None: one vmap, where groups were measured to gain nothing
+    cpu_group: int | None = None
 
     @abc.abstractmethod
     def reset(self, key: jax.Array) -> TaskState:

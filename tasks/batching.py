@@ -1,15 +1,18 @@
 """Stepping many envs at once: one vmap, or vmapped groups one after the other on CPU.
 
-XLA on CPU steps a vmapped MJX port more slowly per env at a wide batch than at a narrow one.
-Batch 128, env steps/s, one vmap against 8 groups of 16 stepped in turn with `lax.map`
-(2026-12-04, this project's 2-core CPU, `python -m benchmarks.env_throughput --groups none
-16`): walker 535 -> 1908, cheetah 9311 -> 15505, quadruped 1436 -> 2512
-(benchmarks/results/env_throughput_groups.csv). Each env runs the same operations either
-way (MJX's solver loops under vmap leave a converged env unchanged until the rest of its
-batch is done), but XLA may vectorise the two layouts differently: bit-identical states at
-XLA's default optimisation level (one-off check, cheetah, 20 envs, 5 steps), up to float32
-rounding at -O0 (`tests/tasks/test_batching.py`). On accelerators a wide batch is what they
-are for: one vmap there.
+XLA on CPU steps a vmapped DM Control port more slowly per env at a wide batch than at a
+narrow one. Batch 128, env steps/s, one vmap against 8 groups of 16 stepped in turn with
+`lax.map` (2026-12-04, this project's 2-core CPU, `python -m benchmarks.env_throughput
+--groups none 16`): walker 535 -> 1908, cheetah 9311 -> 15505, quadruped 1436 -> 2512
+(benchmarks/results/env_throughput_groups.csv). The MetaWorld ports, whose solver is already
+capped at 5 iterations, gained nothing at batch 64 (0.70-1.42x across the six tasks, mostly
+within run-to-run noise: `metaworld_throughput --group none|16`), so a task opts in with
+`Task.cpu_group`. Each env runs the same operations either way (MJX's solver loops under
+vmap leave a converged env unchanged until the rest of its batch is done), but XLA may
+vectorise the two layouts differently: bit-identical states at XLA's default optimisation
+level (one-off check, cheetah, 20 envs, 5 steps), up to float32 rounding at -O0
+(`tests/tasks/test_batching.py`). On accelerators a wide batch is what they are for: one
+vmap there.
 """
 from __future__ import annotations
 
@@ -22,9 +25,15 @@ import jax
 CPU_GROUP = 16
 
 
-def default_group() -> int | None:
-    """CPU_GROUP on a CPU backend, None (one vmap) on accelerators."""
-    return CPU_GROUP if jax.default_backend() == "cpu" else None
+def default_group(task) -> int | None:
+    """`task.cpu_group` on a CPU backend, None (one vmap) on accelerators."""
+    return getattr(task, "cpu_group", None) if jax.default_backend() == "cpu" else None
+
+
+def group_from_option(text: str, task) -> int | None:
+    """A benchmark's `--group(s)` value: "none" (one vmap), "auto" (`default_group(task)`)
+    or a group size."""
+    return None if text == "none" else default_group(task) if text == "auto" else int(text)
 
 
 def group_size(batch: int, group: int | None) -> int | None:

@@ -7,7 +7,7 @@ import pytest
 
 import tasks
 from hprior_jax.envs import VecEnv
-from tasks.batching import CPU_GROUP, group_size
+from tasks.batching import CPU_GROUP, default_group, group_size
 
 
 @pytest.mark.parametrize("batch, group, expected", [
@@ -24,8 +24,8 @@ def test_vecenv_in_groups_steps_like_one_vmap():
     the same states with the same actions gives the same states and rewards up to rounding,
     far inside the tolerances the port keeps against dm_control over 20 steps
     (test_dm_control_tasks.py: qpos 1e-4, obs 1e-3, reward 1e-3)."""
-    assert jax.default_backend() == "cpu" and group_size(20, CPU_GROUP) == 10
     task = tasks.make("cheetah_run")
+    assert default_group(task) == CPU_GROUP and group_size(20, CPU_GROUP) == 10  # on CPU
     env = VecEnv(task, 20)
     state = jax.jit(env.reset)(jax.random.key(0))
     actions = jax.random.uniform(jax.random.key(1), (5, 20, task.action_size), minval=-1,
