@@ -85,33 +85,41 @@ def slim_dm_control(dest: Path) -> None:
 
 def pack_warp(dest: Path) -> None:
     """warp-lang's wheel, less WARP_DROP, as a tar.xz in two halves: dest/a/part, dest/b/part."""
-    import zipfile
-
     with tempfile.TemporaryDirectory() as tmp:
         subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps",
                         "--only-binary=:all:", "--python-version", "3.12", "--implementation",
                         "cp", *[a for p in PLATFORMS for a in ("--platform", p)], "-d", tmp,
                         f"warp-lang=={WARP_VERSION}"], check=True)
-        packed = Path(tmp) / "warp.tar.xz"
-        with zipfile.ZipFile(next(Path(tmp).glob("warp_lang-*.whl"))) as wheel, \
-                tarfile.open(packed, "w:xz", preset=9) as tar:
-            for info in wheel.infolist():
-                if info.is_dir() or any(info.filename.startswith(d) for d in WARP_DROP):
-                    continue
-                member = tarfile.TarInfo(info.filename)
-                member.size, member.mode = info.file_size, 0o755
-                with wheel.open(info) as f:
-                    tar.addfile(member, f)
-        data = packed.read_bytes()
-    half = len(data) // 2 + 1
+        pack_wheel(next(Path(tmp).glob("warp_lang-*.whl")), dest, WARP_DROP)
+
+
+def pack_wheel(wheel_path: Path, dest: Path, drop: tuple[str, ...]) -> None:
+    """The files of a wheel (a zip), less those under `drop`, as a tar.xz split in two
+    halves: dest/a/part and dest/b/part (`cat` them back together)."""
+    import io
+    import zipfile
+
+    packed = io.BytesIO()
+    with zipfile.ZipFile(wheel_path) as wheel, \
+            tarfile.open(fileobj=packed, mode="w:xz", preset=9) as tar:
+        for info in wheel.infolist():
+            if info.is_dir() or any(info.filename.startswith(d) for d in drop):
+                continue
+            member = tarfile.TarInfo(info.filename)
+            member.size, member.mode = info.file_size, 0o755
+            with wheel.open(info) as f:
+                tar.addfile(member, f)
+    data = packed.getvalue()
+    half = (len(data) + 1) // 2
     for name, part in (("a", data[:half]), ("b", data[half:])):
         (dest / name).mkdir(parents=True, exist_ok=True)
         (dest / name / "part").write_bytes(part)
 
 
-def unpack_warp(target: Path) -> None:
-    """The halves, concatenated on stdin, unpacked into `target` (on the GPU machine)."""
-    with tarfile.open(fileobj=sys.stdin.buffer, mode="r|xz") as tar:
+def unpack_warp(target: Path, stream=None) -> None:
+    """The halves, concatenated on stdin (or `stream`), unpacked into `target` (on the GPU
+    machine)."""
+    with tarfile.open(fileobj=stream or sys.stdin.buffer, mode="r|xz") as tar:
         tar.extractall(target, filter="data")
 
 

@@ -151,3 +151,26 @@ def test_gpu_carry_keeps_what_the_dm_control_tasks_load(tmp_path):
             "[load_suite_model(d) for d in ('cheetah', 'walker')]; load_quadruped_model(10)")
     env = dict(os.environ, PYTHONPATH=f"{tmp_path}:{gpu_carry.ROOT}", MUJOCO_GL="disable")
     subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env, check=True)
+
+
+def test_gpu_carry_packs_a_wheel_in_two_halves_that_unpack_whole(tmp_path):
+    """`gpu_carry --warp`'s packing: a wheel's files less the dropped folders, in two halves
+    that, concatenated, unpack to the same bytes."""
+    import io
+    import zipfile
+
+    from benchmarks import gpu_carry
+
+    wheel = tmp_path / "pkg-1.0-py3-none-any.whl"
+    files = {"pkg/__init__.py": b"x = 1\n", "pkg/bin/lib.so": bytes(range(256)) * 400,
+             "pkg/tests/test_x.py": b"", "pkg-1.0.dist-info/METADATA": b"Name: pkg\n"}
+    with zipfile.ZipFile(wheel, "w") as z:
+        for name, data in files.items():
+            z.writestr(name, data)
+    gpu_carry.pack_wheel(wheel, tmp_path / "carry", drop=("pkg/tests",))
+    halves = [(tmp_path / "carry" / h / "part").read_bytes() for h in ("a", "b")]
+    assert all(halves) and abs(len(halves[0]) - len(halves[1])) <= 1
+    gpu_carry.unpack_warp(tmp_path / "site", io.BytesIO(b"".join(halves)))
+    for name, data in files.items():
+        path = tmp_path / "site" / name
+        assert (path.read_bytes() == data) if "tests" not in name else not path.exists()
