@@ -16,7 +16,7 @@ Then, there: `source .gpu/run.sh && python3 -m benchmarks.gpu_suite --parts ... 
     python -m benchmarks.gpu_carry --warp       # also MJX-Warp's warp-lang, in two halves
 
 MJX-Warp (`benchmarks/mjx_warp.py`) needs warp-lang, whose wheel (149 MB) no call can carry.
-Without its CPU compiler, examples and tests it packs into a 76 MB tar.xz, split into
+Without its CPU compiler, examples and tests it packs into a 75 MiB tar.xz, split into
 `.gpu_warp/a/` and `.gpu_warp/b/`; three calls in a row on the warm machine (it is given
 back 30 s after a call) bring it there: carry `.gpu_warp/a` with
 `mkdir -p /tmp/wp && cp .gpu_warp/a/* /tmp/wp/`, then `.gpu_warp/b` with
