@@ -137,12 +137,12 @@ def end_to_end_rows(s: dict, device: str, keep: Path | None) -> tuple[list[dict]
 
     if keep:
         keep.mkdir(parents=True, exist_ok=True)
+    name = f"{s['e2e_algo']}_{s['e2e_seeds']}"  # the run's folder (and log) in `work`
     with tempfile.TemporaryDirectory() as work:
         work = keep or Path(work)
         row = one_run(s["e2e_task"], s["e2e_algo"], s["e2e_seeds"], s["e2e_preset"],
-                      s["e2e_steps"], work, device=device, extra_args=s["e2e_args"])
-        chunks = perf_rows(work / f"{s['e2e_algo']}_{s['e2e_seeds']}" / "metrics.jsonl",
-                           SEEDS[0])
+                      s["e2e_steps"], work, device=device, extra_args=s["e2e_args"], name=name)
+        chunks = perf_rows(work / name / "metrics.jsonl", SEEDS[0])
     return [row], chunks
 
 

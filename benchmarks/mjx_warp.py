@@ -47,9 +47,10 @@ def warp_available() -> bool:
     return True
 
 
-def pool_sizes(m: mujoco.MjModel) -> tuple[int, int]:
-    """(contact slots, constraint rows) MJX-JAX allocates for `m`: Warp gets the same."""
-    d = physics.mjx.make_data(physics.put_model(m))
+def pool_sizes(mx: physics.mjx.Model) -> tuple[int, int]:
+    """(contact slots, constraint rows) MJX-JAX allocates for its model `mx`: Warp gets the
+    same."""
+    d = physics.mjx.make_data(mx)
     return max(int(d._impl.contact.dist.shape[0]), 1), max(int(d._impl.efc_J.shape[0]), 1)
 
 
@@ -58,10 +59,11 @@ class Engine:
 
     def __init__(self, m: mujoco.MjModel, impl: str):
         self.impl, self.mj_model = impl, m
-        self.naconmax, self.njmax = pool_sizes(m)
         with contextlib.redirect_stdout(io.StringIO()):  # Warp's start-up banner
             self.model = (physics.put_model(m) if impl == "jax"
                           else physics.mjx.put_model(m, impl="warp"))
+        self.naconmax, self.njmax = pool_sizes(self.model if impl == "jax"
+                                               else physics.put_model(m))
         self._step = physics.step if impl == "jax" else physics.mjx.step
 
     def data(self, qpos: jax.Array, qvel: jax.Array):
@@ -147,7 +149,7 @@ def c_rollout(m: mujoco.MjModel, qpos, qvel, ctrls, n_sub: int) -> np.ndarray:
     return out
 
 
-def parity(task, impls, n_states: int) -> dict:
+def parity(task, engines: dict[str, Engine], n_states: int) -> dict:
     """Largest |qpos - C MuJoCo's| after 1 and 10 control steps, per impl."""
     m = task.mj_model
     qpos, qvel = reset_states(task, n_states, seed=7)
@@ -155,8 +157,7 @@ def parity(task, impls, n_states: int) -> dict:
     ref = c_rollout(m, np.asarray(qpos, np.float64), np.asarray(qvel, np.float64),
                     np.asarray(ctrls, np.float64), task.n_sub_steps)
     out = {}
-    for impl in impls:
-        engine = Engine(m, impl)
+    for impl, engine in engines.items():
         with contextlib.redirect_stdout(io.StringIO()):
             _, qs = jax.jit(lambda d, c: engine.control_steps(d, c, task.n_sub_steps))(
                 engine.data(qpos, qvel), ctrls)
@@ -188,17 +189,17 @@ def main(argv=None) -> int:
         qpos1, _ = reset_states(task, 1)
         c_rate = c_substeps_per_s(m, np.asarray(qpos1[0], np.float64),
                                   np.asarray(random_ctrls(m, jax.random.key(3), 100, 1)[:, 0]))
-        checks = parity(task, impls, args.parity) if args.parity else {}
-        slots = pool_sizes(m)[0]
+        engines = {impl: Engine(m, impl) for impl in impls}
+        checks = parity(task, engines, args.parity) if args.parity else {}
         for batch in args.batch:
             qpos, qvel = reset_states(task, batch)
             for impl in impls:
-                compile_s, run_s = throughput(Engine(m, impl), qpos, qvel, n_sub, args.steps,
+                compile_s, run_s = throughput(engines[impl], qpos, qvel, n_sub, args.steps,
                                               args.repeats)
                 substeps = batch * args.steps * n_sub / run_s
                 rows.append(dict(
                     task=name, batch=batch, impl=impl, steps=args.steps, n_sub_steps=n_sub,
-                    contact_slots=slots, compile_s=round(compile_s, 2),
+                    contact_slots=engines[impl].naconmax, compile_s=round(compile_s, 2),
                     substeps_per_s=round(substeps, 1), env_steps_per_s=round(substeps / n_sub, 1),
                     c_substeps_per_s=round(c_rate, 1), c_over_mjx=round(c_rate / substeps, 3),
                     **{k: v for k, v in checks.items() if k.startswith(impl)},
