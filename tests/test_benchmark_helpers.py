@@ -174,3 +174,39 @@ def test_gpu_carry_packs_a_wheel_in_two_halves_that_unpack_whole(tmp_path):
     for name, data in files.items():
         path = tmp_path / "site" / name
         assert (path.read_bytes() == data) if "tests" not in name else not path.exists()
+
+
+def test_bpref_runner_shims_what_bpref_needs_and_maps_our_settings(tmp_path):
+    """A stand-in for BPref's train_PEBBLE.py records what the runner gives each process:
+    numpy's old aliases, the reward model moved off "cuda", metaworld's old module, one
+    thread, its own seed and our preset's settings as hydra overrides."""
+    from benchmarks.bpref_end_to_end import bpref_overrides, run_bpref
+
+    bpref = tmp_path / "bpref"
+    (bpref / "custom_dmc2gym").mkdir(parents=True)
+    (bpref / "reward_model.py").write_text("device = 'cuda'\n")
+    (bpref / "train_PEBBLE.py").write_text(
+        "import json, os, sys\n"
+        "import numpy as np\n"
+        "import reward_model\n"
+        "import metaworld.envs.mujoco.env_dict as d\n"
+        "args = dict(a.split('=', 1) for a in sys.argv[1:])\n"
+        "json.dump({'device': reward_model.device, 'np_int': np.int is int,\n"
+        "           'env_dict': d.ALL_V2_ENVIRONMENTS, 'omp': os.environ['OMP_NUM_THREADS'],\n"
+        "           'args': args}, open('seen.json', 'w'))\n")
+    overrides = bpref_overrides("cheetah_run", "reduced", 20_000)
+    out = run_bpref(bpref, tmp_path / "deps", overrides, 2, tmp_path / "work")
+    assert out["wall_s"] >= out["first_exit_s"] > 0
+    seen = [json.loads(p.read_text())
+            for p in sorted((tmp_path / "work").glob("bpref_*/seen.json"))]
+    assert len(seen) == 2 and seen[0]["args"]["seed"] != seen[1]["args"]["seed"]
+    for s in seen:
+        assert s["device"] == "cpu" and s["np_int"] and s["env_dict"] == {} and s["omp"] == "1"
+        args = s["args"]
+        # the reduced PEBBLE preset on cheetah_run (hprior_jax.methods.pebble.pebble_preset)
+        assert args["num_train_steps"] == "20000" and args["num_interact"] == "4000"
+        assert args["reward_batch"] == "10" and args["max_feedback"] == "100"
+        assert args["feed_type"] == "1" and args["reward_update"] == "50"
+        assert args["agent.params.actor_lr"] == "0.0005"
+        assert args["agent.params.batch_size"] == "256"
+        assert args["double_q_critic.params.hidden_dim"] == "256"
