@@ -32,6 +32,19 @@ def test_knn_matches_brute_force(count, chunk):
         assert np.all(np.isinf(np.asarray(got)))  # fewer than k + 1 states: undefined (BPref errors)
 
 
+def test_knn_keeps_float32_accuracy_at_cheetah_scale():
+    """|s|^2 - 2 s.r + |r|^2 loses digits to |s|^2: on states of cheetah's scale (positions
+    ~1, velocities ~10) the distances stay within 1e-4 relative of float64 ones."""
+    rng = np.random.default_rng(0)
+    scale = np.r_[np.ones(8), 10 * np.ones(9)]
+    buffer = (rng.normal(size=(2000, 17)) * scale).astype(np.float32)
+    states = buffer[rng.integers(0, 1500, size=64)]
+    got = jax.jit(partial(S.knn_distance, k=5))(jnp.asarray(states), jnp.asarray(buffer),
+                                                 jnp.asarray(1500))
+    want = _np_knn(states.astype(np.float64), buffer.astype(np.float64), 1500, 5)
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+
+
 def test_knn_self_distance_is_the_first_neighbour():
     buffer = jnp.asarray([[0.0], [1.0], [3.0], [6.0], [10.0]])
     got = S.knn_distance(buffer[:2], buffer, jnp.asarray(5), k=1, chunk_size=2)

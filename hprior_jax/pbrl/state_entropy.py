@@ -19,13 +19,21 @@ def knn_distance(states: jax.Array, buffer: jax.Array, count: jax.Array, k: int 
     """states[B, d], buffer[C, d] (rows 0..count-1 valid) -> [B] (k+1)-th smallest L2 distance.
 
     The buffer is scanned in chunks of `chunk_size` rows (BPref uses 500), keeping a running
-    top-(k+1), so memory is O(B * chunk_size * d) and only ceil(count / chunk_size) chunks run.
+    top-(k+1), so memory is O(B * chunk_size) and only ceil(count / chunk_size) chunks run.
     Fewer than k+1 valid rows gives +inf.
+
+    Squared distances are |s|^2 + |r|^2 - 2 s.r (one matmul per chunk at full float32
+    precision, clamped at 0) rather than BPref's norm of the differences, which XLA on a CPU
+    computes as a [B, chunk, d] broadcast and a reduction over d, tens of times slower
+    (benchmarks/state_entropy.py); they differ by float32 rounding relative to |s|^2 (the
+    benchmark's `max_abs_diff` against BPref's formula). The k+1 nearest are chosen on squared
+    distances and the root is taken of the one returned.
     """
     cap = buffer.shape[0]
     chunk = min(int(chunk_size), cap)
     b = states.shape[0]
     states = states.astype(jnp.float32)
+    states_sq = jnp.sum(jnp.square(states), axis=-1)
     n_chunks = (count + chunk - 1) // chunk
 
     def body(i, best):
@@ -36,14 +44,18 @@ def knn_distance(states: jax.Array, buffer: jax.Array, count: jax.Array, k: int 
         rows = jax.lax.dynamic_slice_in_dim(buffer, s0, chunk, axis=0).astype(jnp.float32)
         idx = s0 + jnp.arange(chunk)
         ok = (idx >= start) & (idx < count)
-        d = jnp.sqrt(jnp.sum(jnp.square(states[:, None, :] - rows[None, :, :]), axis=-1))  # [B, chunk]
-        d = jnp.where(ok[None, :], d, jnp.inf)
-        neg, _ = jax.lax.top_k(-jnp.concatenate([best, d], axis=1), k + 1)
+        # HIGHEST: an accelerator's default float32 matmul (TF32) would lose the small
+        # distances to the rounding of |s|^2
+        cross = jnp.matmul(states, rows.T, precision=jax.lax.Precision.HIGHEST)
+        d2 = jnp.maximum(states_sq[:, None] + jnp.sum(jnp.square(rows), axis=-1)[None, :]
+                         - 2.0 * cross, 0.0)  # [B, chunk]
+        d2 = jnp.where(ok[None, :], d2, jnp.inf)
+        neg, _ = jax.lax.top_k(-jnp.concatenate([best, d2], axis=1), k + 1)
         return -neg  # ascending
 
     best = jnp.full((b, k + 1), jnp.inf, jnp.float32)
     best = jax.lax.fori_loop(0, n_chunks, body, best)
-    return best[:, k]
+    return jnp.sqrt(best[:, k])
 
 
 @flax.struct.dataclass
