@@ -99,15 +99,15 @@ def write_shim(shim: Path) -> None:
     (env_dict / "env_dict.py").write_text("ALL_V2_ENVIRONMENTS = {}\nALL_V1_ENVIRONMENTS = {}\n")
 
 
-def bpref_overrides(task: str, preset: str, steps: int | None) -> list[str]:
-    """BPref's hydra overrides for our PEBBLE configuration of (task, preset)."""
+def bpref_overrides(task: str, preset: str, steps: int) -> list[str]:
+    """BPref's hydra overrides for our PEBBLE configuration of (task, preset), `steps` long."""
     cfg = train_preset(task, "pebble", preset)
     pb, sac = cfg.pebble, cfg.sac
     if pb.reward_hidden != 256 or pb.reward_depth != 3 or pb.reward_batch != 128:
         # BPref's RewardModel fixes these (256 x 3 hidden, 128-pair minibatches)
         raise ValueError("BPref's reward model is 256 x 3 with 128-pair batches only")
     values = {
-        "env": task, "device": "cpu", "num_train_steps": steps or cfg.steps,
+        "env": task, "device": "cpu", "num_train_steps": steps,
         "num_seed_steps": cfg.num_seed_steps, "num_unsup_steps": pb.num_unsup_steps,
         "num_interact": pb.num_interact, "max_feedback": pb.max_feedback,
         "reward_batch": pb.queries_per_round, "reward_update": pb.reward_epochs,
@@ -177,15 +177,15 @@ def main(argv=None) -> None:
     if args.bpref is None or not (args.bpref / "train_PEBBLE.py").exists():
         p.error("--bpref must be a BPref checkout (train_PEBBLE.py at its top)")
 
-    overrides = bpref_overrides(args.task, args.preset, args.steps)
-    steps = int(next(o for o in overrides if o.startswith("num_train_steps=")).split("=")[1])
+    steps = args.steps or train_preset(args.task, "pebble", args.preset).steps
+    overrides = bpref_overrides(args.task, args.preset, steps)
     rows = []
     with tempfile.TemporaryDirectory(prefix="hprior_bpref_") as tmp:
         tmp = args.keep or tmp
         for repeat in range(1, args.repeats + 1):
             work = Path(tmp) / f"repeat_{repeat}"
             work.mkdir(parents=True)
-            ours = one_run(args.task, "pebble", args.seeds, args.preset, args.steps, work)
+            ours = one_run(args.task, "pebble", args.seeds, args.preset, steps, work)
             theirs = run_bpref(args.bpref, args.deps, overrides, args.seeds, work)
             for side, r in (("hprior_jax", ours), ("bpref", theirs)):
                 rows.append({"repeat": repeat, "side": side, "task": args.task,
