@@ -13,12 +13,15 @@ with a fresh persistent compilation cache (cold), then all again on their now-fi
 caches (warm). Writes benchmarks/results/compile_ahead.csv: seconds from
 process start to the first env step (perf/first_step_s), wall seconds of the whole run
 (process start to exit), the compile seconds the main thread spent or waited for
-(perf/compile_s), and the parts' seconds.
+(perf/compile_s), and the parts' seconds. `--trees before=DIR after=.` runs each mode with
+the code of each checkout in turn (e.g. a `git worktree` of an earlier commit), so a change
+is measured against its parent in the same run; column `tree`.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -34,23 +37,31 @@ def main(argv=None) -> None:
     p.add_argument("--steps", type=int, default=12_000)
     p.add_argument("--modes", nargs="+", default=MODES, choices=MODES)
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--trees", nargs="+", default=["this=."], metavar="LABEL=DIR",
+                   help="checkouts whose code to run, each mode in turn (default: this one)")
     args = p.parse_args(argv)
+    trees = dict(t.split("=", 1) for t in args.trees)
+    commits = {label: subprocess.run(["git", "-C", d, "rev-parse", "--short", "HEAD"],
+                                     capture_output=True, text=True).stdout.strip()
+               for label, d in trees.items()}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):
             for cache in ("cold", "warm"):
                 for mode in args.modes:
-                    name = f"{mode}_{r}_{cache}"
-                    row = one_run("cheetah_run", "pebble", 1, "reduced", args.steps, Path(tmp),
-                                  extra_args=("--compile-ahead", mode), name=name,
-                                  cache=f"{mode}_{r}")
-                    row.update(mode=mode, cache=cache, repeat=r)
-                    rows.append(row)
-                    print(f"{name}: first env step {row['first_step_s']:.1f} s, wall "
-                          f"{row['wall_s']:.1f} s, compile waited {row['compile_s']:.1f} s",
-                          flush=True)
-    keys = ["mode", "cache", "repeat", "first_step_s", "wall_s", "compile_s", "chunk_s",
-            "eval_s", "event_s", "env_steps_per_s"]
+                    for label, tree in trees.items():
+                        name = f"{mode}_{r}_{cache}_{label}"
+                        row = one_run("cheetah_run", "pebble", 1, "reduced", args.steps,
+                                      Path(tmp), extra_args=("--compile-ahead", mode), name=name,
+                                      cache=f"{mode}_{r}_{label}", tree=Path(tree).resolve())
+                        row.update(mode=mode, cache=cache, repeat=r, tree=label,
+                                   commit=commits[label])
+                        rows.append(row)
+                        print(f"{name}: first env step {row['first_step_s']:.1f} s, wall "
+                              f"{row['wall_s']:.1f} s, compile waited {row['compile_s']:.1f} s",
+                              flush=True)
+    keys = ["mode", "cache", "repeat", "tree", "commit", "first_step_s", "wall_s", "compile_s",
+            "chunk_s", "eval_s", "event_s", "env_steps_per_s"]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore", lineterminator="\n")

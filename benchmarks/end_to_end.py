@@ -79,10 +79,11 @@ def first_record(metrics_file: Path, key: str) -> float:
 def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
             work: Path, device: str = "cpu", extra_args: tuple[str, ...] = (),
             extra_env: dict | None = None, name: str | None = None,
-            cache: str | None = None) -> dict:
+            cache: str | None = None, tree: Path | None = None) -> dict:
     """One `hprior train` child; `extra_args` / `extra_env` go to it (e.g. `--devices 2` and
     the XLA flag that makes CPU devices), `name` labels its folder (default algo_seeds),
-    `cache` its compilation cache's (default: the name, so a new name starts cold)."""
+    `cache` its compilation cache's (default: the name, so a new name starts cold), `tree`
+    the checkout whose code it runs (default: this one)."""
     name = name or f"{algo}_{n_seeds}"
     run_dir = work / name
     seeds = [str(s) for s in SEEDS[:n_seeds]]
@@ -98,7 +99,8 @@ def one_run(task: str, algo: str, n_seeds: int, preset: str, steps: int | None,
     log_path = work / f"{name}.log"
     t0 = time.perf_counter()
     with open(log_path, "w") as log:  # a file, not a pipe: nothing blocks while we wait4
-        child = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        # `python -m` puts the working directory first on the path: the tree's code runs
+        child = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=tree)
         _, status, usage = os.wait4(child.pid, 0)  # this child's own peak RSS
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:

@@ -146,9 +146,9 @@ def test_a_chunk_of_the_first_phase_runs_the_same_in_its_own_program(tmp_path):
     rs = engine.init_seeds(cfg.seeds)
     runs = {}
     for name in ("chunk/20/random", "chunk/20"):
-        fn, state, step0 = engine._chunk_program(rs, 0, 20, name)
+        fn, state, step0, _ = engine._chunk_program(rs, 0, 20, name)
         copy = jax.tree.map(lambda x: x.copy(), state)  # the program donates its state
-        runs[name] = jax.device_get(fn(copy, step0))
+        runs[name] = jax.device_get(fn(copy, step0, engine.episode_starts(rs, 0)))
     leaves = lambda name: jax.tree.leaves(runs[name])
     assert len(leaves("chunk/20/random")) == len(leaves("chunk/20"))
     for a, b in zip(leaves("chunk/20/random"), leaves("chunk/20")):
@@ -196,7 +196,8 @@ def test_background_compiles_start_when_asked(tmp_path, when):
     host.run(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
     first = {"after_first": {"chunk/20"}, "first_phase_apart": {"chunk/20/random"},
              "at_start": set()}[when]
-    assert compiled_then == [first]
+    # the episode-starts program made the first episode's state (`init_seeds`)
+    assert compiled_then == [first | {"episode_starts"}]
     assert "eval" in engine.ahead_seconds
     if when == "first_phase_apart":  # the full program came from the background
         assert "chunk/20" in engine.ahead_seconds

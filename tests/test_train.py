@@ -39,6 +39,34 @@ def test_seed_alone_equals_its_slot_in_a_vmapped_batch(tmp_path):
     assert not np.allclose(np.asarray(both.sac.log_alpha)[0], np.asarray(both.sac.log_alpha)[1])
 
 
+def test_episodes_start_from_the_resets_of_the_chunks_own_key_stream(tmp_path):
+    """A chunk's new episodes begin from states made outside it (the episode-starts program):
+    `env.reset` of the key the chunk's own step draws at each episode end, found here by
+    walking the chunk's key stream by hand."""
+    cfg = _cfg(tmp_path, seeds=(12345, 23456), chunk_steps=50)  # toy episodes: 20 steps
+    engine = Engine(cfg)
+    assert engine.starts_per_chunk == 3
+    rs = engine.init_seeds(cfg.seeds)
+    step0, length = 5, 45  # episode ends at steps 19 and 39
+    starts = engine.episode_starts(rs, step0)
+    reset = jax.jit(engine.env.reset)
+    keys = np.asarray(rs.key)
+    done, _ = engine.run_chunk(rs, step0, length)
+    for seed, key in enumerate(keys):
+        firsts = []
+        for step in range(step0, step0 + length):
+            key, _, _, _, k_reset = jax.random.split(key, 5)
+            if (step + 1) % 20 == 0:
+                firsts.append(np.asarray(reset(k_reset).task.obs))
+        assert len(firsts) == 2
+        for j, first in enumerate(firsts):
+            np.testing.assert_array_equal(np.asarray(starts.task.obs)[seed, j], first)
+            # the chunk continued from it: the obs stored at the step after the j-th end
+            np.testing.assert_array_equal(np.asarray(done.replay.obs)[seed, 20 * (j + 1)],
+                                          first[0])
+        assert not np.array_equal(firsts[0], firsts[1])
+
+
 def test_resume_equals_uninterrupted(tmp_path):
     """2 chunks + checkpoint + restore + 2 chunks == 4 chunks."""
     cfg_full = _cfg(tmp_path, "full")

@@ -82,9 +82,14 @@ class VecEnv:
 
     def step(self, state: EnvState, action: jax.Array, t: jax.Array, key: jax.Array):
         """`advance`, then a reset of every env if the episode just hit its time limit."""
+        return self.step_or_start(state, action, t, lambda: self.reset(key))
+
+    def step_or_start(self, state: EnvState, action: jax.Array, t: jax.Array,
+                      start: Callable[[], EnvState]):
+        """`advance`, then the state `start()` gives (a new episode's first, made by
+        `reset`) if the episode just hit its time limit."""
         running, transition = self.advance(state, action, t)
-        next_state = jax.lax.cond((t + 1) % self.episode_length == 0,
-                                  lambda: self.reset(key), lambda: running)
+        next_state = jax.lax.cond((t + 1) % self.episode_length == 0, start, lambda: running)
         return next_state, transition
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from hprior_jax.agents.sac import SAC
 from hprior_jax.buffers import replay
-from hprior_jax.envs import make_env, task_info, task_options
+from hprior_jax.envs import EnvState, make_env, task_info, task_options
 from hprior_jax.evaluate import evaluate_policy
 from hprior_jax.loop import devices as seed_devices
 from hprior_jax.loop.state import RunState
@@ -83,10 +83,11 @@ class Engine:
         return self.phase_at(step), min(bounds) - step
 
     # -- pure functions (per seed) --------------------------------------------------------
-    def init(self, seed_key: jax.Array, capacity: int | None = None) -> RunState:
-        k_sac, k_env, k_run, k_method = jax.random.split(seed_key, 4)
+    def init(self, seed_key: jax.Array, env: EnvState, capacity: int | None = None) -> RunState:
+        """`env`: the first episode's state, `env.reset(env_key(seed_key))` (made by the
+        episode-starts program, `init_seeds`)."""
+        k_sac, _, k_run, k_method = jax.random.split(seed_key, 4)
         capacity = capacity or self.cfg.capacity
-        env = self.env.reset(k_env)
         return RunState(
             sac=self.sac.init(k_sac),
             replay=replay.init(capacity, self.env.obs_size, self.env.action_size,
@@ -100,12 +101,56 @@ class Engine:
             return None
         return {k: v[0] for k, v in self.task.render_state(env_state.task.data).items()}
 
-    def chunk(self, rs: RunState, step0: jax.Array, *, length: int, only: int | None = None):
+    # -- episode starts: made outside the chunk ------------------------------------------
+    # A new episode's first state is made by a program of its own, not inside the chunk:
+    # the reset is a second copy of the physics in the chunk's program (cheetah's 200
+    # settling substeps), and without it the first chunk's program traced and compiled in
+    # a third of the time (benchmarks/README, "Start-up"). The states are the ones the
+    # chunk made before: the same keys, drawn from the chunk's own key stream.
+    @property
+    def starts_per_chunk(self) -> int:
+        """Episode ends a chunk can hold (a chunk is at most `chunk_steps` long)."""
+        return -(-self.cfg.chunk_steps // self.env.episode_length)
+
+    def episode_keys(self, key: jax.Array, step0: jax.Array) -> jax.Array:
+        """[starts_per_chunk] reset keys of the episodes that start in the chunk from global
+        step `step0` whose key stream starts at `key` (`rs.key`): slot j holds the key the
+        chunk's step at the j-th episode end draws (`chunk`'s split); slots past the chunk's
+        last episode end hold keys never used."""
+        def draw(key, _):
+            key, _, _, _, k_reset = jax.random.split(key, 5)
+            return key, k_reset
+
+        steps = self.cfg.chunk_steps
+        _, k_resets = jax.lax.scan(draw, key, None, length=steps)
+        ends = self.env.episode_length
+        at = (ends - 1 - step0 % ends) + ends * jnp.arange(self.starts_per_chunk)
+        return k_resets[jnp.minimum(at, steps - 1)]
+
+    def episode_starts(self, rs: RunState, step0: int) -> EnvState:
+        """The states the episodes that start in the chunk from `step0` begin from, stacked
+        [seeds, starts_per_chunk, ...] (the chunk's `starts` input)."""
+        keys = self.compile("episode_keys", self.per_seed(self.episode_keys, (0, None)),
+                            rs.key, np.int32(step0))(rs.key, np.int32(step0))
+        return self._reset_all(keys)
+
+    def _reset_all(self, keys: jax.Array) -> EnvState:
+        """`env.reset` of every key in [seeds, starts_per_chunk] keys: one program."""
+        fn = self.per_seed(jax.vmap(self.env.reset))
+        return self.compile("episode_starts", fn, keys)(keys)
+
+    def chunk(self, rs: RunState, step0: jax.Array, starts: EnvState, *, length: int,
+              only: int | None = None):
         """`length` env steps from global step `step0`. A chunk never crosses a phase change,
         so the phase is an unbatched `lax.switch` index: a real branch under vmap, and one
         compiled program for every phase. `only`: the program of that phase alone (no
-        switch), for chunks the host knows to be in it (`_chunk_name`)."""
+        switch), for chunks the host knows to be in it (`_chunk_name`). `starts`: the first
+        states of the episodes that start in the chunk (`episode_starts`)."""
+        if length > self.cfg.chunk_steps:
+            raise ValueError(f"a chunk of {length} steps: at most chunk_steps "
+                             f"({self.cfg.chunk_steps}), whose episode starts it is given")
         phase = jnp.asarray(self._phase_index(step0), jnp.int32)
+        ends = self.env.episode_length
         metric_keys = sorted({k for p in self.phases for k in p.metrics})
 
         def branch(fn):
@@ -124,13 +169,16 @@ class Engine:
 
         def body(rs: RunState, i):
             step = step0 + i
+            # k_reset: drawn so the stream stays the one `episode_keys` walks
             key, k_act, k_sample, k_update, k_reset = jax.random.split(rs.key, 5)
             obs = rs.env.task.obs[0]
             args = (rs, obs, step, (k_act, k_sample, k_update))
             action, rest, write_at, metrics = (jax.lax.switch(phase, branches, *args)
                                                if only is None else branches[only](*args))
             rs = rest.replace(replay=rs.replay)
-            env_state, tr = self.env.step(rs.env, action[None], step, k_reset)
+            nth_start = step // ends - step0 // ends  # episode ends before this step
+            env_state, tr = self.env.step_or_start(
+                rs.env, action[None], step, lambda: jax.tree.map(lambda x: x[nth_start], starts))
             reward = self.method.stored_reward(rs, tr.obs[0], tr.action[0], tr.true_reward[0])
             # every seed has taken `step` steps, so the ring position is the same for all and
             # unbatched under vmap: a dynamic-update-slice, not a scatter
@@ -234,8 +282,12 @@ class Engine:
         return seed_devices.place(self.mesh, tree)
 
     def init_seeds(self, seeds, capacity: int | None = None) -> RunState:
-        keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
-        return self.per_seed(partial(self.init, capacity=capacity))(self.place(keys))
+        keys = self.place(np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds]))
+        # the first episode's state: the episode-starts program, every slot on the env key
+        env_keys = np.stack([np.asarray(env_key(jax.random.PRNGKey(s))) for s in seeds])
+        env_keys = np.repeat(env_keys[:, None], self.starts_per_chunk, axis=1)
+        env = jax.tree.map(lambda x: x[:, 0], self._reset_all(self.place(env_keys)))
+        return self.per_seed(partial(self.init, capacity=capacity), (0, 0))(keys, env)
 
     def compiled_chunk(self, rs: RunState, step0: int, length: int):
         """The compiled program of `length` env steps from `step0`: one per length for every
@@ -256,12 +308,16 @@ class Engine:
 
     def _chunk_program(self, rs: RunState, step0: int, length: int, name: str | None = None):
         only = 0 if name is not None and name.count("/") == 2 else None
-        fn = self.per_seed(partial(self.chunk, length=length, only=only), (0, None),
+        fn = self.per_seed(partial(self.chunk, length=length, only=only), (0, None, 0),
                            donate_argnums=0)
-        return fn, rs, np.int32(step0)
+        per_chunk = self.starts_per_chunk
+        starts = jax.tree.map(lambda x: jax.ShapeDtypeStruct(
+            (x.shape[0], per_chunk) + x.shape[1:], x.dtype), rs.env)
+        return fn, rs, np.int32(step0), starts
 
     def run_chunk(self, rs: RunState, step0: int, length: int):
-        return self.compiled_chunk(rs, step0, length)(rs, np.int32(step0))
+        program = self.compiled_chunk(rs, step0, length)
+        return program(rs, np.int32(step0), self.episode_starts(rs, step0))
 
     def run_event(self, rs: RunState, step: int):
         return self.method.run_event(rs, step)
@@ -302,7 +358,14 @@ def _lower_and_compile(fn, shapes):
     return fn.lower(*shapes).compile(), time.perf_counter() - t0
 
 
+def env_key(seed_key: jax.Array) -> jax.Array:
+    """The key of a seed's first episode (`Engine.init`'s split)."""
+    return jax.random.split(seed_key, 4)[1]
+
+
 def _abstract(x) -> jax.ShapeDtypeStruct:
+    if isinstance(x, jax.ShapeDtypeStruct):
+        return x
     weak = getattr(getattr(x, "aval", None), "weak_type", False)
     return jax.ShapeDtypeStruct(np.shape(x), np.result_type(x), weak_type=weak)
 

@@ -136,7 +136,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 first_step = process_age() if chunks == 0 else None
                 if chunks == 0 and ahead in ("after_first", "first_phase_apart"):
                     engine.compile_run_ahead(rs, step)  # before the chunk: it donates rs
-                rs, metrics = program(rs, np.int32(step))
+                starts = engine.episode_starts(rs, step)
+                rs, metrics = program(rs, np.int32(step), starts)
                 metrics = devices.fetch(metrics)
             keep = engine.phase_metrics(phase)  # drop placeholders of other phases
             metrics = {k: v for k, v in metrics.items()
