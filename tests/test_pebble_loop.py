@@ -174,8 +174,7 @@ def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
 
     inline = _cfg(tmp_path, "inline", seeds=(7,), steps=100, eval_every=60)
     engine = Engine(inline)
-    engine.compile_run_ahead = lambda rs, step: None
-    host.run(inline, prepare_run_dir(inline), progress=False, engine=engine)
+    host.run(inline, prepare_run_dir(inline), progress=False, engine=engine, compile_ahead="off")
     assert not engine.ahead_seconds
     assert (tmp_path / "ahead" / "eval.csv").read_text() == (tmp_path / "inline" / "eval.csv").read_text()
     rounds = lambda run: [r for r in _records(tmp_path / run) if "reward/true_corr" in r]
@@ -196,8 +195,10 @@ def test_background_compiles_start_when_asked(tmp_path, when):
     host.run(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
     first = {"after_first": {"chunk/20"}, "first_phase_apart": {"chunk/20/random"},
              "at_start": set()}[when]
-    # the episode-starts program made the first episode's state (`init_seeds`)
+    # the episode-starts program made the first episode's state (`init_seeds`); with the
+    # first chunk's program first, it compiled in the background beside that one
     assert compiled_then == [first | {"episode_starts"}]
+    assert ("episode_starts" in engine.ahead_seconds) == (when != "at_start")
     assert "eval" in engine.ahead_seconds
     if when == "first_phase_apart":  # the full program came from the background
         assert "chunk/20" in engine.ahead_seconds

@@ -63,8 +63,17 @@ class VecEnv:
         self._step = vmap_in_groups(task.step, default_group(task))
 
     def reset(self, key: jax.Array) -> EnvState:
-        ts = self._reset(jax.random.split(key, self.num_envs))
-        zeros = jnp.zeros((self.num_envs,), jnp.float32)
+        return self.reset_many(key)
+
+    def reset_many(self, keys: jax.Array) -> EnvState:
+        """`reset` of every raw key in `keys` [..., 2]: an EnvState [..., num_envs, ...], made
+        by one vmap of the task's reset over all of them. Each batching level re-walks the
+        reset's trace (cheetah: 2.9 s to lower one level, 6.0 s three nested)."""
+        lead, n = keys.shape[:-1], self.num_envs
+        env_keys = jax.vmap(lambda k: jax.random.split(k, n))(keys.reshape(-1, keys.shape[-1]))
+        ts = self._reset(env_keys.reshape(-1, env_keys.shape[-1]))
+        ts = jax.tree.map(lambda x: x.reshape(lead + (n,) + x.shape[1:]), ts)
+        zeros = jnp.zeros(lead + (n,), jnp.float32)
         return EnvState(task=ts, episode_return=zeros, episode_success=ts.success)
 
     def advance(self, state: EnvState, action: jax.Array, t: jax.Array):

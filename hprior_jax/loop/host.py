@@ -79,7 +79,16 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     seeds = list(cfg.seeds)
     ckpt = Checkpointer(run_dir / "checkpoints")
     step = 0
+    if compile_ahead not in AHEAD_WHEN:
+        raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
+    # a run cut short (tests) would compile programs it never runs
+    ahead = compile_ahead if max_chunks is None else "off"
+    engine.first_phase_apart = ahead == "first_phase_apart"
+    if ahead in ("after_first", "first_phase_apart"):  # the first chunk's program first
+        engine.compile_start(seeds, (ckpt.latest_step() or 0) if resume else 0)
     rs = engine.init_seeds(seeds, capacity=saved_capacity if resume else None)
+    # the first episodes' states and the first chunk's program: counted with the first chunk
+    start_compile_s = sum(engine.compile_seconds.values())
     if resume and ckpt.latest_step() is not None:
         step, rs = restore_latest(ckpt, rs)
     if rs.replay.capacity != cfg.capacity:
@@ -106,16 +115,14 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     interrupt = interrupt or StopRequest()
     try:
         engine.person = _person(engine, run_dir, labelling, interrupt, bar) if primary else None
-        if compile_ahead not in AHEAD_WHEN:
-            raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
-        # a run cut short (tests) would compile programs it never runs
-        ahead = compile_ahead if max_chunks is None else "off"
-        engine.first_phase_apart = ahead == "first_phase_apart"
         if ahead == "at_start":
             engine.compile_run_ahead(rs, step)
         while step < cfg.steps and (max_chunks is None or chunks < max_chunks):
-            compiled_before = set(engine.compile_seconds)
+            # the first chunk also reports the programs compiled before the loop
+            compiled_before = set(engine.compile_seconds) if chunks else set()
             timer = _WallTimer(engine.compile_seconds)  # wall time per part, compiles apart
+            if chunks == 0:
+                timer.seconds["compile_s"] += start_compile_s
             if step in events:  # e.g. a feedback round: before this step's update
                 if engine.method.asks_person and last_ckpt != step:
                     # a person may stop the run while the round waits: it resumes from here
@@ -180,9 +187,9 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                 bar.write(f"compiled {name} in {waited:.1f} s" if ahead is None else
                           f"compiled {name} in the background in {ahead:.1f} s (the run "
                           f"waited {waited:.1f} s for it)")
-                if len(engine.compile_seconds) == 1:
-                    bar.write("  (once per shape, not counted in env steps/s; cached in "
-                              "$HPRIOR_JAX_CACHE for the next start)")
+            if chunks == 1:
+                bar.write("  (compiles: once per shape, not counted in env steps/s; cached in "
+                          "$HPRIOR_JAX_CACHE for the next start)")
             bar.advance(length, sum(v for k, v in timer.seconds.items()
                                     if k not in ("compile_s", "label_wait_s")))
             if stop and step < cfg.steps:
