@@ -60,13 +60,15 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     (`hprior_jax.labelling.teacher.AskOptions`; default: 127.0.0.1:8765, an hour).
     `compile_ahead`: when to start compiling the later programs (evaluation, the method's
     events, other chunk lengths) in a background thread (`Engine.compile_run_ahead`):
-    "after_first" (default) once the main thread has compiled the first chunk's program;
+    "after_first" (default) once the main thread has compiled the first chunk's program
+    (while the background thread compiles the episode-starts program, `Engine.compile_start`);
     "first_phase_apart" the same, but the first phase's chunks (random actions) run a
     program of that phase alone, quicker to compile (`Engine._chunk_name`); "at_start"
     before the first chunk's compile (the two compiles then share the cores and the first
     env step comes later); "off" (each program when first needed).
     Each chunk's perf records hold its wall time by part; the first chunk's also
-    `perf/first_step_s` (process start to its first env step).
+    `perf/first_step_s` (process start to its first env step), and its `perf/compile_s`
+    counts the compiles the run waited for before it (the episode starts, its program).
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
