@@ -28,6 +28,9 @@ from hprior_jax.methods import registry
 from hprior_jax.setup_jax import compiler_options
 
 
+STARTS = "episode_starts"  # the program of the states new episodes begin from
+
+
 class Engine:
     def __init__(self, cfg, devices=None, records_physics: bool = False):
         """`devices`: how many devices the seeds are split over (default: as many as divide
@@ -135,10 +138,13 @@ class Engine:
         return self._reset_all(keys)
 
     def _reset_all(self, keys: jax.Array) -> EnvState:
-        """`env.reset` of every key in [seeds, starts_per_chunk] keys: one program, one vmap
-        (`VecEnv.reset_many`; nested over seeds and slots, it took 2.6x as long to lower)."""
-        fn = self.over_seed_axis(self.env.reset_many)
-        return self.compile("episode_starts", fn, keys)(keys)
+        """`env.reset` of every key in [seeds, starts_per_chunk] keys (`STARTS`)."""
+        return self.compile(STARTS, self._starts_program(), keys)(keys)
+
+    def _starts_program(self):
+        """The episode-starts program: one vmap over every seed and slot (`VecEnv.reset_many`;
+        nested over seeds and slots, it took 2.6x as long to lower)."""
+        return self.over_seed_axis(self.env.reset_many)
 
     def chunk(self, rs: RunState, step0: jax.Array, starts: EnvState, *, length: int,
               only: int | None = None):
@@ -245,8 +251,8 @@ class Engine:
         starts program gives, so on two cores the first env step waits for the longer
         compile, not both (`init_seeds` then finds both ready)."""
         keys = self._env_keys(seeds)
-        lowered = self.over_seed_axis(self.env.reset_many).lower(*_shapes((keys,)))
-        self._in_background("episode_starts", partial(_timed, lowered.compile))
+        lowered = self._starts_program().lower(*_shapes((keys,)))
+        self._in_background(STARTS, partial(_timed, lowered.compile))
         env = jax.tree.map(lambda x: jax.ShapeDtypeStruct((x.shape[0],) + x.shape[2:], x.dtype),
                            lowered.out_info)
         seed_keys = jax.ShapeDtypeStruct((len(seeds), 2), np.uint32)
