@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import math
+import threading
 import warnings
 from pathlib import Path
 
@@ -63,17 +64,35 @@ class RunLog:
         self._csv = csv.writer(self._csv_file, lineterminator="\n")
         if new_csv:
             self._csv.writerow(EVAL_FIELDS)
-        self._tb = self._open_tensorboard(resume_step)
+        # importing tensorboardX takes ~1.3 s on a 2-core CPU: on a thread of its own, it
+        # overlaps the first chunk (whose XLA run releases Python's lock) instead of coming
+        # before the run's first env step
+        self._writers: dict = {}
+        self._open_error: BaseException | None = None
+        self._opening = threading.Thread(target=self._open_tensorboard, args=(resume_step,),
+                                         name="open-tensorboard", daemon=True)
+        self._opening.start()
+
+    @property
+    def _tb(self) -> dict:
+        """The TensorBoard writer of each seed (empty without tensorboardX)."""
+        self._opening.join()
+        if self._open_error is not None:  # raised where the writers are first used
+            raise self._open_error
+        return self._writers
 
     def _open_tensorboard(self, resume_step):
         try:
             from tensorboardX import SummaryWriter
         except ImportError:  # pragma: no cover - tensorboardX is a core dependency
-            return {}
+            return
         # events at steps after the checkpoint are dropped (its own step's were kept)
         purge = None if resume_step is None else resume_step + 1
-        return {s: SummaryWriter(str(self.dir / "tb" / f"seed_{s}"), purge_step=purge)
-                for s in self.seeds}
+        try:
+            self._writers = {s: SummaryWriter(str(self.dir / "tb" / f"seed_{s}"),
+                                              purge_step=purge) for s in self.seeds}
+        except Exception as e:  # noqa: BLE001 - the main thread raises it
+            self._open_error = e
 
     def _truncate_after(self, step: int) -> None:
         if self.jsonl_path.exists():

@@ -195,10 +195,11 @@ def test_background_compiles_start_when_asked(tmp_path, when):
     host.run(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
     first = {"after_first": {"chunk/20"}, "first_phase_apart": {"chunk/20/random"},
              "at_start": set()}[when]
-    # the episode-starts program made the first episode's state (`init_seeds`); with the
-    # first chunk's program first, it compiled in the background beside that one
-    assert compiled_then == [first | {"episode_starts"}]
-    assert ("episode_starts" in engine.ahead_seconds) == (when != "at_start")
+    # the episode-starts and initial-state programs made the first run state (`init_seeds`);
+    # with the first chunk's program first, they compiled in the background beside that one
+    assert compiled_then == [first | {"episode_starts", "init"}]
+    for name in ("episode_starts", "init"):
+        assert (name in engine.ahead_seconds) == (when != "at_start")
     assert "eval" in engine.ahead_seconds
     if when == "first_phase_apart":  # the full program came from the background
         assert "chunk/20" in engine.ahead_seconds

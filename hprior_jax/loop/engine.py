@@ -29,6 +29,7 @@ from hprior_jax.setup_jax import compiler_options
 
 
 STARTS = "episode_starts"  # the program of the states new episodes begin from
+INIT = "init"  # the program of every seed's first run state
 
 
 class Engine:
@@ -244,19 +245,23 @@ class Engine:
             self._ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile-ahead")
         self._pending[name] = self._ahead.submit(compile_it)
 
-    def compile_start(self, seeds, step: int) -> None:
-        """Compiles the two programs a run's first env step waits for side by side: the
-        episode-starts program on the background thread while this one compiles the first
-        chunk's (from `step`). The chunk needs the starts' shapes only, which lowering the
-        starts program gives, so on two cores the first env step waits for the longer
-        compile, not both (`init_seeds` then finds both ready)."""
+    def compile_start(self, seeds, step: int, capacity: int | None = None) -> None:
+        """Compiles the programs a run's first env step waits for side by side: the
+        episode-starts and initial-state programs on the background thread while this one
+        compiles the first chunk's (from `step`). The chunk needs their shapes only, which
+        lowering them gives, so on two cores the first env step waits for the longer
+        compile, not all (`init_seeds(seeds, capacity)` then finds them ready)."""
         keys = self._env_keys(seeds)
         lowered = self._starts_program().lower(*_shapes((keys,)))
         self._in_background(STARTS, partial(_timed, lowered.compile))
-        env = jax.tree.map(lambda x: jax.ShapeDtypeStruct((x.shape[0],) + x.shape[2:], x.dtype),
-                           lowered.out_info)
+        env = jax.tree.map(_abstract, lowered.out_info)
         seed_keys = jax.ShapeDtypeStruct((len(seeds), 2), np.uint32)
-        rs = jax.eval_shape(self.per_seed(self.init, (0, 0)), seed_keys, env)
+        lowered = self._init_program(capacity).lower(seed_keys, env)
+        self._in_background(self._init_name(capacity), partial(_timed, lowered.compile))
+        if capacity in (None, self.cfg.capacity):
+            rs = jax.tree.map(_abstract, lowered.out_info)
+        else:  # a resumed run grows its buffer to this run's capacity before its first chunk
+            rs = jax.eval_shape(self._init_program(None), seed_keys, env)
         self.compiled_chunk(rs, step, self.chunk_plan(step)[1])
 
     def compile_run_ahead(self, rs: RunState, step: int) -> None:
@@ -309,8 +314,23 @@ class Engine:
 
     def init_seeds(self, seeds, capacity: int | None = None) -> RunState:
         keys = self.place(np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds]))
-        env = jax.tree.map(lambda x: x[:, 0], self._reset_all(self._env_keys(seeds)))
-        return self.per_seed(partial(self.init, capacity=capacity), (0, 0))(keys, env)
+        starts = self._reset_all(self._env_keys(seeds))
+        program = self._init_program(capacity)
+        return self.compile(self._init_name(capacity), program, keys, starts)(keys, starts)
+
+    def _init_program(self, capacity: int | None):
+        """The initial run states from the seeds' keys and their episode starts (every slot
+        the first episode's state; slot 0 is taken in the program, not by an eager slice
+        per leaf, each of which would compile a program of its own)."""
+        def init(seed_key, starts):
+            return self.init(seed_key, jax.tree.map(lambda x: x[0], starts), capacity)
+
+        return self.per_seed(init, (0, 0))
+
+    def _init_name(self, capacity: int | None) -> str:
+        """One initial-state program per replay capacity (a resumed run restores into the
+        capacity it saved, then grows it)."""
+        return INIT if capacity in (None, self.cfg.capacity) else f"{INIT}/{capacity}"
 
     def _env_keys(self, seeds) -> jax.Array:
         """The first episode's keys as the episode-starts program takes them: [seeds,

@@ -68,12 +68,12 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     env step comes later); "off" (each program when first needed).
     Each chunk's perf records hold its wall time by part; the first chunk's also
     `perf/first_step_s` (process start to its first env step), and its `perf/compile_s`
-    counts the compiles the run waited for before it (the episode starts, its program).
+    counts the compiles the run waited for before it (the episode starts, the initial
+    state, its program).
 
     The first Ctrl-C lets the chunk in flight finish, writes a checkpoint and raises
     `Interrupted`; a second one stops the process at once (the default SIGINT action)."""
     from hprior_jax.checkpoint import Checkpointer
-    from hprior_jax.plotting import plot_learning_curve
     from hprior_jax.run_log import RunLog
 
     run_dir = Path(run_dir)
@@ -86,10 +86,11 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     # a run cut short (tests) would compile programs it never runs
     ahead = compile_ahead if max_chunks is None else "off"
     engine.first_phase_apart = ahead == "first_phase_apart"
+    capacity = saved_capacity if resume else None
     if ahead in ("after_first", "first_phase_apart"):  # the first chunk's program first
-        engine.compile_start(seeds, (ckpt.latest_step() or 0) if resume else 0)
-    rs = engine.init_seeds(seeds, capacity=saved_capacity if resume else None)
-    # the first episodes' states and the first chunk's program: counted with the first chunk
+        engine.compile_start(seeds, (ckpt.latest_step() or 0) if resume else 0, capacity)
+    rs = engine.init_seeds(seeds, capacity=capacity)
+    # the first states, the first chunk's program: counted with the first chunk
     start_compile_s = sum(engine.compile_seconds.values())
     if resume and ckpt.latest_step() is not None:
         step, rs = restore_latest(ckpt, rs)
@@ -206,6 +207,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
         log.close()
         ckpt.close()
     if primary and (run_dir / "eval.csv").exists():
+        from hprior_jax.plotting import plot_learning_curve  # matplotlib: ~1 s to import
+
         plot_learning_curve(run_dir / "eval.csv", run_dir / "learning_curve.png",
                             title=f"{cfg.algo} on {cfg.task}")
     return rs

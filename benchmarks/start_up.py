@@ -1,0 +1,123 @@
+"""Where a start's seconds go, up to its first env step: every trace, lowering and compile
+jax reports, by program and thread, on the real `hprior train` path.
+
+`python -m benchmarks.start_up [--task cheetah_run] [--algo pebble] [--preset reduced]
+[--caches cold warm] [--out CSV]`: runs `hprior train` (one seed, 12000 steps) as a child with
+a listener on jax's own compile events (`jax.monitoring` time spans: tracing to a jaxpr,
+lowering to MLIR, the backend compile), stops it once its first chunk has logged, and prints
+the timeline: seconds from process start at which each span began and ended, on which thread,
+for which program. `cold` starts on an empty compilation cache, `warm` on the one the cold run
+filled. Rows go to `--out` (default: print only); `perf/first_step_s` is the run's own figure.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
+          "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+          "/jax/core/compile/backend_compile_duration": "compile"}
+
+
+def child(spans_path: str, argv: list[str]) -> None:
+    """Runs `hprior train argv` with every compile event written to `spans_path` (JSONL)."""
+    import threading
+
+    from hprior_jax.loop.host import process_age
+
+    t_process = time.time() - process_age()  # the process's start on jax's clock
+    out = open(spans_path, "a", buffering=1)
+
+    def on_span(event, start, end, **kw):
+        if event in EVENTS:
+            out.write(json.dumps({"kind": EVENTS[event], "program": kw.get("fun_name", ""),
+                                  "thread": threading.current_thread().name,
+                                  "start_s": start - t_process, "end_s": end - t_process})
+                      + "\n")
+
+    import jax.monitoring
+
+    jax.monitoring.register_event_time_span_listener(on_span)
+    from hprior_jax import cli
+
+    sys.exit(cli.main(["train", *argv]))
+
+
+def first_step(metrics: Path) -> float | None:
+    if not metrics.exists():
+        return None
+    for line in metrics.read_text().splitlines():
+        rec = json.loads(line)
+        if "perf/first_step_s" in rec:
+            return float(rec["perf/first_step_s"])
+    return None
+
+
+def one_start(work: Path, label: str, cache: Path, argv: list[str]) -> tuple[float, list]:
+    """One child up to its first chunk's log; returns its first env step and its spans."""
+    run_dir, spans = work / label, work / f"{label}.jsonl"
+    env = dict(os.environ, HPRIOR_JAX_CACHE=str(cache), JAX_PLATFORMS="cpu")
+    cmd = [sys.executable, "-m", "benchmarks.start_up", "--child", str(spans), "--",
+           *argv, "--out", str(run_dir), "--no-progress"]
+    with open(work / f"{label}.log", "w") as log:
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        while (first := first_step(run_dir / "metrics.jsonl")) is None:
+            if proc.poll() is not None:
+                raise RuntimeError(f"{cmd} ended first:\n{(work / f'{label}.log').read_text()}")
+            time.sleep(0.5)
+        proc.kill()
+        proc.wait()
+    rows = [json.loads(line) for line in spans.read_text().splitlines()]
+    return first, sorted(rows, key=lambda r: r["start_s"])
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--child"]:
+        return child(argv[1], argv[3:])
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--task", default="cheetah_run")
+    p.add_argument("--algo", default="pebble")
+    p.add_argument("--preset", default="reduced")
+    p.add_argument("--caches", nargs="+", default=["cold", "warm"], choices=["cold", "warm"])
+    p.add_argument("--min-s", type=float, default=0.05, help="spans shorter than this: summed")
+    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("train_args", nargs="*", help="more `hprior train` arguments (after --)")
+    args = p.parse_args(argv)
+    train = ["--task", args.task, "--algo", args.algo, "--preset", args.preset, "--seeds",
+             "12345", "--steps", "12000", *args.train_args]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for cache in args.caches:
+            first, spans = one_start(work, cache, work / "cache", train)
+            print(f"\n{cache}: first env step at {first:.1f} s (perf/first_step_s)")
+            short = {}
+            for s in spans:
+                if s["start_s"] > first:
+                    continue
+                took = s["end_s"] - s["start_s"]
+                if took < args.min_s:
+                    short[s["kind"]] = short.get(s["kind"], 0.0) + took
+                    continue
+                print(f"  {s['start_s']:6.1f} -> {s['end_s']:6.1f}  {took:5.1f} s  "
+                      f"{s['kind']:7s} {s['program'][:50]:50s} {s['thread']}")
+                rows.append({"cache": cache, "first_step_s": round(first, 2), **s})
+            print("  shorter spans, summed: " + ", ".join(f"{k} {v:.1f} s"
+                                                          for k, v in short.items()))
+    if args.out:
+        with open(args.out, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+
+if __name__ == "__main__":
+    main()
