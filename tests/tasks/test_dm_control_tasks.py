@@ -143,3 +143,15 @@ def test_policy_returns_match_dm_control_distribution(name):
         ours, theirs = parity.policy_returns(task, name, 6, policy)
         spread = max(ours.std(), theirs.std(), 1.0)
         assert abs(ours.mean() - theirs.mean()) < 3 * spread, (policy, ours, theirs)
+
+
+@pytest.mark.parametrize("domain", ["cheetah", "walker"])
+def test_suite_model_files_are_what_dm_control_loads(domain):
+    """The ports read dm_control's files without importing its suite: the same XML and
+    assets as the domain's own `get_model_and_assets()`."""
+    import importlib
+
+    from tasks.dm_control.common import suite_model_files
+
+    xml, assets = importlib.import_module(f"dm_control.suite.{domain}").get_model_and_assets()
+    assert suite_model_files(domain) == (xml, assets)
