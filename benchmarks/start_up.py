@@ -2,12 +2,16 @@
 jax reports, by program and thread, on the real `hprior train` path.
 
 `python -m benchmarks.start_up [--task cheetah_run] [--algo pebble] [--preset reduced]
-[--caches cold warm] [--out CSV]`: runs `hprior train` (one seed, 12000 steps) as a child with
-a listener on jax's own compile events (`jax.monitoring` time spans: tracing to a jaxpr,
-lowering to MLIR, the backend compile), stops it once its first chunk has logged, and prints
-the timeline: seconds from process start at which each span began and ended, on which thread,
-for which program. `cold` starts on an empty compilation cache, `warm` on the one the cold run
-filled. Rows go to `--out` (default: print only); `perf/first_step_s` is the run's own figure.
+[--caches cold warm] [--repeats 1] [--trees LABEL=DIR ...] [--out CSV]`: runs `hprior train`
+(one seed, 12000 steps) as a child with a listener on jax's own compile events
+(`jax.monitoring` time spans: tracing to a jaxpr, lowering to MLIR, the backend compile),
+stops it once its first chunk has logged, and prints the timeline: seconds from process start
+at which each span began and ended, on which thread, for which program. `cold` starts on an
+empty compilation cache, `warm` on the one the cold run filled. `--trees before=DIR after=.`
+runs the code of each checkout in turn (a `git worktree` of an earlier commit), alternating
+their order, so a change is measured against its parent in the same run; a start's first env step
+moves by several seconds from run to run on a 2-core machine, so compare repeats, not one run.
+Rows (one per span, `--out`; default: print only) carry the run's own `perf/first_step_s`.
 """
 from __future__ import annotations
 
@@ -60,14 +64,18 @@ def first_step(metrics: Path) -> float | None:
     return None
 
 
-def one_start(work: Path, label: str, cache: Path, argv: list[str]) -> tuple[float, list]:
-    """One child up to its first chunk's log; returns its first env step and its spans."""
+def one_start(work: Path, label: str, cache: Path, argv: list[str],
+              tree: Path) -> tuple[float, list]:
+    """One child (the code of checkout `tree`) up to its first chunk's log; returns its first
+    env step and its spans."""
     run_dir, spans = work / label, work / f"{label}.jsonl"
     env = dict(os.environ, HPRIOR_JAX_CACHE=str(cache), JAX_PLATFORMS="cpu")
-    cmd = [sys.executable, "-m", "benchmarks.start_up", "--child", str(spans), "--",
+    # the listener is this file's; the code it runs is the tree's (first on the path)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(spans), "--",
            *argv, "--out", str(run_dir), "--no-progress"]
+    env["PYTHONPATH"] = os.pathsep.join([str(tree), env.get("PYTHONPATH", "")])
     with open(work / f"{label}.log", "w") as log:
-        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=tree)
         while (first := first_step(run_dir / "metrics.jsonl")) is None:
             if proc.poll() is not None:
                 raise RuntimeError(f"{cmd} ended first:\n{(work / f'{label}.log').read_text()}")
@@ -76,6 +84,24 @@ def one_start(work: Path, label: str, cache: Path, argv: list[str]) -> tuple[flo
         proc.wait()
     rows = [json.loads(line) for line in spans.read_text().splitlines()]
     return first, sorted(rows, key=lambda r: r["start_s"])
+
+
+def _print_spans(spans: list, first: float, min_s: float) -> list:
+    """Prints the spans that began before the first env step (shorter ones summed by kind);
+    returns the printed ones."""
+    shown, short = [], {}
+    for s in spans:
+        if s["start_s"] > first:
+            continue
+        took = s["end_s"] - s["start_s"]
+        if took < min_s:
+            short[s["kind"]] = short.get(s["kind"], 0.0) + took
+            continue
+        print(f"  {s['start_s']:6.1f} -> {s['end_s']:6.1f}  {took:5.1f} s  "
+              f"{s['kind']:7s} {s['program'][:50]:50s} {s['thread']}")
+        shown.append(s)
+    print("  shorter spans, summed: " + ", ".join(f"{k} {v:.1f} s" for k, v in short.items()))
+    return shown
 
 
 def main(argv=None) -> None:
@@ -87,31 +113,34 @@ def main(argv=None) -> None:
     p.add_argument("--algo", default="pebble")
     p.add_argument("--preset", default="reduced")
     p.add_argument("--caches", nargs="+", default=["cold", "warm"], choices=["cold", "warm"])
+    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--trees", nargs="+", default=["this=."], metavar="LABEL=DIR",
+                   help="checkouts whose code to run, in turn (default: this one)")
     p.add_argument("--min-s", type=float, default=0.05, help="spans shorter than this: summed")
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("train_args", nargs="*", help="more `hprior train` arguments (after --)")
     args = p.parse_args(argv)
     train = ["--task", args.task, "--algo", args.algo, "--preset", args.preset, "--seeds",
              "12345", "--steps", "12000", *args.train_args]
-    rows = []
+    trees = {label: Path(d).resolve() for label, d in (t.split("=", 1) for t in args.trees)}
+    rows, firsts = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        for cache in args.caches:
-            first, spans = one_start(work, cache, work / "cache", train)
-            print(f"\n{cache}: first env step at {first:.1f} s (perf/first_step_s)")
-            short = {}
-            for s in spans:
-                if s["start_s"] > first:
-                    continue
-                took = s["end_s"] - s["start_s"]
-                if took < args.min_s:
-                    short[s["kind"]] = short.get(s["kind"], 0.0) + took
-                    continue
-                print(f"  {s['start_s']:6.1f} -> {s['end_s']:6.1f}  {took:5.1f} s  "
-                      f"{s['kind']:7s} {s['program'][:50]:50s} {s['thread']}")
-                rows.append({"cache": cache, "first_step_s": round(first, 2), **s})
-            print("  shorter spans, summed: " + ", ".join(f"{k} {v:.1f} s"
-                                                          for k, v in short.items()))
+        for r in range(args.repeats):
+            # every other repeat the other way round: neither tree always runs first
+            for label, tree in list(trees.items())[::1 if r % 2 == 0 else -1]:
+                for cache in args.caches:
+                    name = f"{label}_{r}_{cache}"
+                    first, spans = one_start(work, name, work / f"cache_{label}_{r}", train,
+                                             tree)
+                    firsts.setdefault((label, cache), []).append(first)
+                    print(f"\n{name}: first env step at {first:.1f} s (perf/first_step_s)")
+                    rows += [{"tree": label, "repeat": r, "cache": cache,
+                              "first_step_s": round(first, 2), **s}
+                             for s in _print_spans(spans, first, args.min_s)]
+    print("\nfirst env step, s: " + "; ".join(
+        f"{label} {cache}: " + ", ".join(f"{v:.1f}" for v in values)
+        + f" (mean {sum(values) / len(values):.1f})" for (label, cache), values in firsts.items()))
     if args.out:
         with open(args.out, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(rows[0]))

@@ -106,8 +106,8 @@ def test_lambda_sweep_runs_vmapped_beside_the_seeds_in_one_program(lambda_sweep)
     # ahead-of-time compiles, one per name: more would mean a shape or a static value
     # changes between chunks or cells
     assert sorted(engine.compile_seconds) == [
-        "chunk/20", "eval", "feedback_round", "feedback_round/first", "world_model/pretrain",
-        "world_model/update"]
+        "chunk/20", "episode_keys", "episode_starts", "eval", "feedback_round",
+        "feedback_round/first", "init", "world_model/pretrain", "world_model/update"]
     cell = lambda i: _flat(rs.method.reward, i)  # cells: (λ 0: 0, 1), (λ 5: 2, 3), (λ 50: 4, 5)
     # lanes of one program with the same inputs compute the same bits: a gap means λ arrived
     assert _gap(cell(0), cell(2)) > 1e-5 and _gap(cell(2), cell(4)) > 1e-5

@@ -8,7 +8,8 @@ substep), time limit 10 s -> 1000 steps.
 Reset: limited joints uniform in their range, then 200 zero-control substeps to settle, as
 dm_control. One known difference: dm_control runs the first settling substep's `mj_step2`
 on forward quantities computed at the default pose (its reset_context ran `mj_forward`
-before the pose was randomised); we forward the randomised pose first. Both then settle
+before the pose was randomised); we run the position and velocity stages (`mj_step1`, all
+that `mj_step2` reads) at the randomised pose first. Both then settle
 for 200 steps, so the initial-state distributions agree (checked statistically in the
 parity benchmark), but a reset from the same random draw is not bit-identical.
 """
@@ -51,7 +52,7 @@ class CheetahRun(DMControlTask):
         sample = jax.random.uniform(key, self._limited_lo.shape,
                                     minval=self._limited_lo, maxval=self._limited_hi)
         data = data.replace(qpos=data.qpos.at[self._limited_qpos].set(sample))
-        data = self.settle(self.forward(data), SETTLE_STEPS)
+        data = self.settle(data, SETTLE_STEPS)
         return data.replace(time=jnp.zeros_like(data.time))
 
     def _observation(self, data: mjx.Data) -> jax.Array:

@@ -13,7 +13,7 @@ import numpy as np
 from tasks.base import Task, TaskState
 from tasks.batching import CPU_GROUP
 from tasks.physics import (contacts_at_cap, forward, legacy_substeps, max_contacts_of, mjx,
-                            put_model, with_max_contacts)
+                            put_model, substeps_from_pose, with_max_contacts)
 
 
 def load_suite_model(domain: str, max_contacts: int | None = None) -> mujoco.MjModel:
@@ -148,9 +148,10 @@ class DMControlTask(Task):
         )
 
     def settle(self, data: mjx.Data, n: int) -> mjx.Data:
-        """`n` zero-control substeps, as dm_control's `physics.step(nstep=n)` in resets."""
+        """`n` zero-control substeps from a pose just set (qpos/qvel, not yet step1-fresh), as
+        dm_control's `physics.step(nstep=n)` in resets; returns step1-fresh data."""
         data = data.replace(ctrl=jnp.zeros_like(data.ctrl))
-        return legacy_substeps(self.model, data, n)
+        return substeps_from_pose(self.model, data, n)
 
     def contacts_at_cap(self, data: mjx.Data) -> jax.Array:
         return contacts_at_cap(self.model, data, self.max_contacts)
