@@ -25,8 +25,9 @@ with contextlib.redirect_stdout(io.StringIO()):
 from mujoco.mjx._src import collision_driver as _collision_driver  # noqa: E402
 from mujoco.mjx._src import solver as _mjx_solver  # noqa: E402
 
-__all__ = ["mjx", "step1", "step2", "legacy_substeps", "substeps_from_pose", "put_model", "solve", "forward", "step",
-           "linesearch_loop", "with_max_contacts", "max_contacts_of", "contacts_at_cap"]
+__all__ = ["mjx", "step1", "step2", "legacy_substeps", "substeps_from_pose", "put_model", "solve",
+           "forward", "step", "linesearch_loop", "with_max_contacts", "max_contacts_of",
+           "contacts_at_cap"]
 
 
 # -- the constraint solver's line search: a while loop, not a scan of ls_iterations ------
