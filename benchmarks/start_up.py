@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import subprocess
 import sys
@@ -25,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+FIRST_STEP = "perf/first_step_s"
 EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "trace",
           "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
           "/jax/core/compile/backend_compile_duration": "compile"}
@@ -54,20 +56,12 @@ def child(spans_path: str, argv: list[str]) -> None:
     sys.exit(cli.main(["train", *argv]))
 
 
-def first_step(metrics: Path) -> float | None:
-    if not metrics.exists():
-        return None
-    for line in metrics.read_text().splitlines():
-        rec = json.loads(line)
-        if "perf/first_step_s" in rec:
-            return float(rec["perf/first_step_s"])
-    return None
-
-
 def one_start(work: Path, label: str, cache: Path, argv: list[str],
               tree: Path) -> tuple[float, list]:
     """One child (the code of checkout `tree`) up to its first chunk's log; returns its first
     env step and its spans."""
+    from benchmarks.end_to_end import first_record  # here: the child imports nothing more
+
     run_dir, spans = work / label, work / f"{label}.jsonl"
     env = dict(os.environ, HPRIOR_JAX_CACHE=str(cache), JAX_PLATFORMS="cpu")
     # the listener is this file's; the code it runs is the tree's (first on the path)
@@ -76,7 +70,8 @@ def one_start(work: Path, label: str, cache: Path, argv: list[str],
     env["PYTHONPATH"] = os.pathsep.join([str(tree), env.get("PYTHONPATH", "")])
     with open(work / f"{label}.log", "w") as log:
         proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=tree)
-        while (first := first_step(run_dir / "metrics.jsonl")) is None:
+        metrics = run_dir / "metrics.jsonl"
+        while not metrics.exists() or math.isnan(first := first_record(metrics, FIRST_STEP)):
             if proc.poll() is not None:
                 raise RuntimeError(f"{cmd} ended first:\n{(work / f'{label}.log').read_text()}")
             time.sleep(0.5)

@@ -82,16 +82,16 @@ class RunLog:
         return self._writers
 
     def _open_tensorboard(self, resume_step):
-        try:
-            from tensorboardX import SummaryWriter
-        except ImportError:  # pragma: no cover - tensorboardX is a core dependency
-            return
         # events at steps after the checkpoint are dropped (its own step's were kept)
         purge = None if resume_step is None else resume_step + 1
         try:
+            from tensorboardX import SummaryWriter
+
             self._writers = {s: SummaryWriter(str(self.dir / "tb" / f"seed_{s}"),
                                               purge_step=purge) for s in self.seeds}
-        except Exception as e:  # noqa: BLE001 - the main thread raises it
+        except ImportError:  # pragma: no cover - tensorboardX is a core dependency
+            pass
+        except Exception as e:  # noqa: BLE001 - the main thread raises it (`_tb`)
             self._open_error = e
 
     def _truncate_after(self, step: int) -> None:

@@ -252,14 +252,15 @@ class Engine:
         lowering them gives, so on two cores the first env step waits for the longer
         compile, not all (`init_seeds(seeds, capacity)` then finds them ready)."""
         keys = self._env_keys(seeds)
-        lowered = self._starts_program().lower(*_shapes((keys,)))
-        self._in_background(STARTS, partial(_timed, lowered.compile))
-        env = jax.tree.map(_abstract, lowered.out_info)
+        starts = self._starts_program().lower(*_shapes((keys,)))
+        self._in_background(STARTS, partial(_timed, starts.compile))
+        env = jax.tree.map(_abstract, starts.out_info)
         seed_keys = jax.ShapeDtypeStruct((len(seeds), 2), np.uint32)
-        lowered = self._init_program(capacity).lower(seed_keys, env)
-        self._in_background(self._init_name(capacity), partial(_timed, lowered.compile))
-        if capacity in (None, self.cfg.capacity):
-            rs = jax.tree.map(_abstract, lowered.out_info)
+        name = self._init_name(capacity)
+        init = self._init_program(capacity).lower(seed_keys, env)
+        self._in_background(name, partial(_timed, init.compile))
+        if name == INIT:
+            rs = jax.tree.map(_abstract, init.out_info)
         else:  # a resumed run grows its buffer to this run's capacity before its first chunk
             rs = jax.eval_shape(self._init_program(None), seed_keys, env)
         self.compiled_chunk(rs, step, self.chunk_plan(step)[1])

@@ -61,7 +61,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     `compile_ahead`: when to start compiling the later programs (evaluation, the method's
     events, other chunk lengths) in a background thread (`Engine.compile_run_ahead`):
     "after_first" (default) once the main thread has compiled the first chunk's program
-    (while the background thread compiles the episode-starts program, `Engine.compile_start`);
+    (while the background thread compiles the episode-starts and initial-state programs,
+    `Engine.compile_start`);
     "first_phase_apart" the same, but the first phase's chunks (random actions) run a
     program of that phase alone, quicker to compile (`Engine._chunk_name`); "at_start"
     before the first chunk's compile (the two compiles then share the cores and the first
