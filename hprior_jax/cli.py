@@ -460,7 +460,8 @@ def _reward_lab(argv: list[str]) -> int:
                         help=f"default: {' '.join(default_rules())}; also PRIOR's ablations "
                              f"({' '.join(r for r in rules() if r not in default_rules())}); "
                              "RULE@LAMBDA gives a rule its own λ (prior@1 prior@25: a λ "
-                             "sweep in one program)")
+                             "sweep in one program); RULE~shift the shifted target form "
+                             "α·(R̂ + T) − 1 (oracle~shift, prior~shift)")
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--budgets", nargs="+", type=int, default=[25, 100, 400])
     parser.add_argument("--queries-per-round", type=int, default=None,
@@ -484,9 +485,20 @@ def _reward_lab(argv: list[str]) -> int:
                         help="train the seeds' world models even when a lab of the same "
                              "dataset, seeds and world-model settings left them in "
                              "$HPRIOR_LAB_CACHE/world_models (and do not keep them)")
+    parser.add_argument("--contrasts", nargs="+", default=(), metavar="A:B[@MARGIN]",
+                        help="pre-registered contrasts A − B, reported first with Holm's "
+                             "correction (MARGIN: a number or C:D/K, adds a TOST equivalence "
+                             "test), e.g. oracle~shift:rvar "
+                             "prior~shift:positional~shift@oracle~shift:rvar/2")
     parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
     args = parser.parse_args(argv)
+    from hprior_jax.experiments.contrasts import Contrast
     from hprior_jax.lab.sweep import lab_config, run_lab
+
+    try:
+        contrasts = [Contrast.parse(c) for c in args.contrasts]
+    except ValueError as e:
+        parser.error(f"--contrasts: {e}")
     from hprior_jax.setup_jax import enable_compilation_cache
 
     enable_compilation_cache()
@@ -525,7 +537,7 @@ def _reward_lab(argv: list[str]) -> int:
                      args.prior_set, args.tag)
     out = args.out or f"runs/reward_lab/{args.task}"
     info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given,
-                   reuse_world_models=not args.no_world_model_cache)
+                   reuse_world_models=not args.no_world_model_cache, contrasts=contrasts)
     if info["world_model_cache"]:
         cache = info["world_model_cache"]
         print(f"world models {'loaded from' if cache['loaded'] else 'kept in'} {cache['path']}")

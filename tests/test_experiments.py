@@ -11,8 +11,8 @@ from hprior_jax.loop import host
 from hprior_jax.loop.run_dir import prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.experiments import grid, report
-from hprior_jax.experiments.scores import (normalized_score, paired_t_test, reference_curve,
-                                           task_scores)
+from hprior_jax.experiments.scores import normalized_score, reference_curve, task_scores
+from hprior_jax.statistics import paired_t_test
 
 
 def _curve(steps, values):

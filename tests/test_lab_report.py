@@ -8,9 +8,9 @@ import pytest
 from scipy import stats
 
 from hprior_jax.experiments import lab_report
-from hprior_jax.experiments.lab_report import (METRICS, mean_ci, minimum_detectable_effect,
-                                               paired_comparison, paired_power, summarize,
-                                               write_report)
+from hprior_jax.experiments.lab_report import METRICS, summarize, write_report
+from hprior_jax.statistics import (mean_ci, minimum_detectable_effect, paired_comparison,
+                                   paired_power)
 
 
 def _power_by_nct(effects, sd, n, alpha=0.05):
@@ -218,3 +218,31 @@ def test_pairs_compare_any_two_rules_as_the_reference_comparison_does(tmp_path):
     assert lab_report.main([str(tmp_path / "results.csv"), str(tmp_path / "again"), "--pairs",
                             "better:pebble", "same:better"])
     assert (tmp_path / "again" / "pairs.csv").read_bytes() == (tmp_path / "pairs.csv").read_bytes()
+
+
+def test_within_episode_metrics_see_credit_that_the_pooled_ones_hide():
+    """Two rewards with each episode's level right: one also orders the steps within each
+    episode right, the other reverses them. Pearson over all states barely tells them
+    apart (the levels dominate); the within-episode metrics do, with opposite signs."""
+    from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
+
+    rng = np.random.default_rng(0)
+    level = rng.uniform(-1, 1, (8, 1)) * 5
+    shape = rng.normal(size=(8, 40))
+    true = level + shape
+    right, reversed_ = level + 0.1 * shape, level - 0.1 * shape
+    pairs = np.array([[0, 0, 1, 10], [2, 5, 3, 20], [4, 0, 5, 30]])
+    q_right = reward_quality(right, true, pairs, np.zeros(3, int), 10)
+    q_rev = reward_quality(reversed_, true, pairs, np.zeros(3, int), 10)
+    assert abs(q_right["pearson"] - q_rev["pearson"]) < 0.1
+    assert q_right["episode_pearson"] == pytest.approx(1.0)
+    assert q_rev["episode_pearson"] == pytest.approx(-1.0)
+    assert q_right["segment_rank"] == pytest.approx(1.0)
+    assert q_rev["segment_rank"] == pytest.approx(-1.0)
+    # a reward constant within episodes has no within-episode credit; its moving mean
+    # (uniform credit's best) sees only the smooth part
+    flat = np.repeat(level, 40, axis=1)
+    assert np.isnan(uniform_credit_ceiling(flat, 10)["episode_pearson"])
+    ramp = np.tile(np.linspace(0, 1, 40), (8, 1)) + 0.0 * level
+    assert uniform_credit_ceiling(ramp, 10)["episode_pearson"] > 0.95
+    assert uniform_credit_ceiling(true, 10)["episode_pearson"] < 0.6  # white noise shape

@@ -291,3 +291,28 @@ def test_one_hot_credit_moves_reward_onto_that_step():
     s0, sl = share(p_0), share(p_l)
     assert s0 < 0.3, s0  # measured 0.21
     assert sl > s0 + 0.25, (s0, sl)  # measured 0.65
+
+
+def test_the_shifted_target_keeps_the_return_and_equals_rvar_under_uniform_credit():
+    """α·(R̂ + T·c) − c: Σ_t target = R̂ for any α summing to 1; with α = 1/T it is R̂/T, the
+    raw uniform target; under tanh c = 1 and a segment with R̂ < 0 still gets its
+    most-credited step the highest target (the raw form gives it the lowest)."""
+    r = jnp.asarray([[[-0.5, -0.4, -0.3, -0.2]]])  # R̂ = -1.4
+    alpha = jnp.asarray([[0.7, 0.1, 0.1, 0.1]])
+    c = L.target_shift("shifted", "tanh")
+    assert c == 1.0 and L.target_shift("raw", "tanh") == 0.0
+    assert L.target_shift("shifted", "sig") == 0.0  # a floor at 0: both forms coincide
+    shifted = np.asarray(L.prior_targets(r, alpha, shift=c))
+    raw = np.asarray(L.prior_targets(r, alpha))
+    np.testing.assert_allclose(shifted.sum(-1), -1.4, rtol=1e-6)
+    np.testing.assert_allclose(shifted, [[[0.7 * 2.6 - 1, 0.1 * 2.6 - 1, 0.1 * 2.6 - 1,
+                                           0.1 * 2.6 - 1]]], rtol=1e-6)
+    assert shifted[0, 0].argmax() == 0 and raw[0, 0].argmin() == 0
+    uniform = jnp.full((1, 4), 0.25)
+    np.testing.assert_allclose(L.prior_targets(r, uniform, shift=c),
+                               L.prior_targets(r, uniform), atol=1e-6)
+    by_shift = jax.jit(lambda s: L.prior_loss(r, alpha, shift=s)[0])  # traced, as in the lab
+    assert float(by_shift(c)) == pytest.approx(float(L.prior_loss(r, alpha, shift=1.0)[0]))
+    assert float(by_shift(c)) != pytest.approx(float(by_shift(0.0)))
+    with pytest.raises(ValueError):
+        L.target_shift("floor", "tanh")

@@ -8,7 +8,7 @@ final evaluation, and the mean of the evaluations after step `--after` (default 
 uniform-random seed steps, which the normalized score leaves out too). Then B − A on the seeds
 both ran: the mean difference with its 95% t-interval, the two-sided paired t-test and the
 smallest true difference that test detects with 80% power at this n and this spread
-(`lab_report.paired_comparison`). Runs of the same seed are still different draws when the
+(`statistics.paired_comparison`). Runs of the same seed are still different draws when the
 programs differ, so "paired" removes the seed's share of the variance, not all of it.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hprior_jax.experiments.lab_report import mean_ci, paired_comparison
+from hprior_jax.statistics import mean_ci, paired_comparison
 from hprior_jax.plotting import read_eval_csv
 
 STATISTICS = ("final", "mean_after")

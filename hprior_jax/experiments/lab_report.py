@@ -33,86 +33,21 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy import optimize, stats  # noqa: E402
 
-from hprior_jax.experiments.scores import paired_t_test  # noqa: E402
+from hprior_jax.experiments import contrasts as contrast_tests  # noqa: E402
 from hprior_jax.lab.metrics import METRICS  # noqa: E402
 from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE  # noqa: E402
+from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison  # noqa: E402
 
 METRIC_LABEL = {
     "heldout_accuracy": "held-out preference accuracy",
     "pearson": "Pearson r with the true reward",
     "spearman": "Spearman rank correlation with the true reward",
     "kendall_tau": "Kendall tau with the true reward",
+    "episode_pearson": "within-episode Pearson r with the true reward",
+    "segment_rank": "within-segment rank agreement with the true reward",
 }
-LEVEL = 0.95
-ALPHA = 0.05
-TARGET_POWER = 0.80
 DEFAULT_TITLE = "Reward-learning lab"
-NAN = float("nan")
-
-
-def mean_ci(values, level: float = LEVEL) -> tuple[float, float, float, int]:
-    """(mean, lo, hi, n) of the non-NaN `values` with a Student t-interval at `level`."""
-    x = np.asarray(values, dtype=float)
-    x = x[~np.isnan(x)]
-    n = int(x.size)
-    if n == 0:
-        return NAN, NAN, NAN, 0
-    mean = float(x.mean())
-    if n < 2:
-        return mean, NAN, NAN, n
-    # Written out rather than stats.t.interval, which gives NaN when all values are equal.
-    half_width = stats.t.ppf((1 + level) / 2, n - 1) * x.std(ddof=1) / math.sqrt(n)
-    return mean, float(mean - half_width), float(mean + half_width), n
-
-
-def paired_power(effect: float, sd: float, n: int, alpha: float = ALPHA) -> float:
-    """Probability that the two-sided paired t-test at `alpha` rejects on n pairs whose
-    differences are normal with true mean `effect` and standard deviation `sd`.
-    NaN when n < 2 or sd is not positive."""
-    if n < 2 or not sd > 0:
-        return NAN
-    df = n - 1
-    critical = stats.t.ppf(1 - alpha / 2, df)
-    noncentrality = effect * math.sqrt(n) / sd
-    return float(stats.nct.sf(critical, df, noncentrality)
-                 + stats.nct.cdf(-critical, df, noncentrality))
-
-
-def minimum_detectable_effect(sd: float, n: int, power: float = TARGET_POWER,
-                              alpha: float = ALPHA) -> float:
-    """Smallest true mean difference (> 0) that the two-sided paired t-test at `alpha` detects
-    with probability `power` on n pairs of sd `sd`. NaN when n < 2 or sd is not positive."""
-    if n < 2 or not sd > 0:
-        return NAN
-
-    def shortfall(effect_in_sds: float) -> float:
-        return paired_power(effect_in_sds, 1.0, n, alpha) - power
-
-    upper = 1.0
-    while shortfall(upper) < 0:  # power grows with the effect: widen until it brackets
-        upper *= 2
-        if upper > 1e3:  # at 2-3 seeds the noncentral t gives NaN before 80% power
-            return NAN
-    if math.isnan(shortfall(upper)):
-        return NAN
-    return float(sd * optimize.brentq(shortfall, 0.0, upper))
-
-
-def paired_comparison(reference_by_seed: dict[int, float],
-                      other_by_seed: dict[int, float]) -> dict:
-    """Other - reference on the seeds both have, NaN pairs dropped: {n, diff, diff_lo,
-    diff_hi, p, sd, mde80} (95% t-interval, two-sided paired t-test, MDE at 80% power)."""
-    seeds = sorted(set(reference_by_seed) & set(other_by_seed))
-    reference = np.asarray([reference_by_seed[s] for s in seeds], dtype=float)
-    other = np.asarray([other_by_seed[s] for s in seeds], dtype=float)
-    differences = other - reference  # NaN where either is; mean_ci and the test drop those
-    diff, lo, hi, n = mean_ci(differences)
-    _, p, _ = paired_t_test(reference, other)
-    sd = float(np.nanstd(differences, ddof=1)) if n >= 2 else NAN
-    return {"n": n, "diff": diff, "diff_lo": lo, "diff_hi": hi, "p": p, "sd": sd,
-            "mde80": minimum_detectable_effect(sd, n)}
 
 
 def rule_order(rows) -> list[str]:
@@ -359,8 +294,38 @@ def _pairs_markdown(pairs: list[dict]) -> list[str]:
     return lines
 
 
-def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = ()) -> str:
-    lines = [f"# {title}", "", _method_line(rows), ""]
+def _contrasts_markdown(results: list[dict], pools: list[dict]) -> list[str]:
+    lines = ["## Pre-registered contrasts", "",
+             "Named before the lab ran. Holm's correction over every contrast and budget of a "
+             "metric (p_holm); equivalence by TOST within the stated margin (its p Holm-"
+             "corrected over the contrasts with a margin); 'not detected' is not 'no "
+             "difference'.", ""]
+    for (task, metric), entries in _by_task_metric(results).items():
+        lines += [f"### {task}: {METRIC_LABEL[metric]}", "",
+                  "| contrast | labels | difference [95% CI] | p | p_holm | margin | "
+                  "TOST p_holm | verdict |", "|---|---|---|---|---|---|---|---|"]
+        for e in entries:
+            margin = "–" if not math.isfinite(e["margin"]) else f"±{e['margin']:.3f}"
+            tost = "–" if not math.isfinite(e["tost_p_holm"]) else f"{e['tost_p_holm']:.3g}"
+            lines.append(f"| {e['contrast']} | {e['budget']} | {e['diff']:+.3f} "
+                         f"[{e['diff_lo']:.3f}, {e['diff_hi']:.3f}] | {e['p']:.3g} | "
+                         f"{e['p_holm']:.3g} | {margin} | {tost} | {e['verdict']} |")
+        lines.append("")
+    if pools:
+        lines += ["### Pooled over tasks (fixed effect, inverse-variance weights)", "",
+                  "| contrast | metric | labels | tasks | difference [95% CI] | p |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {e['contrast']} | {e['metric']} | {e['budget']} | {e['tasks']} | "
+                  f"{e['diff']:+.3f} [{e['diff_lo']:.3f}, {e['diff_hi']:.3f}] | {e['p']:.3g} |"
+                  for e in pools] + [""]
+    return lines
+
+
+def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = (),
+              contrasts: list[dict] = (), pools: list[dict] = (), notes=()) -> str:
+    lines = [f"# {title}", ""] + [f"{note}\n" for note in notes] + [_method_line(rows), ""]
+    if contrasts:
+        lines += _contrasts_markdown(contrasts, pools)
     current_task = None
     for (task, metric), entries in _by_task_metric(summary).items():
         if task != current_task:
@@ -379,10 +344,13 @@ def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = ()) -> 
     return "\n".join(lines)
 
 
-def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=()) -> Path:
+def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=(), contrasts=(),
+                 notes=()) -> Path:
     """Writes summary.csv, results.csv (the raw rows), <task>_<metric>.png and report.md to
-    `out_dir`, and with `pairs` ((rule A, rule B), ...) pairs.csv and a report section of
-    A − B; returns the path of report.md."""
+    `out_dir`; with `pairs` ((rule A, rule B), ...) pairs.csv and a section of A − B; with
+    `contrasts` (`contrasts.Contrast`s or their text) contrasts.csv and the pre-registered
+    section first (Holm, TOST, pooled over tasks); `notes`: paragraphs under the title (a
+    warning the reader must see). Returns the path of report.md."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarize(rows)
@@ -391,11 +359,18 @@ def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=()) -> Path:
     compared = pair_comparisons(rows, pairs)
     if compared:
         _write_csv(out_dir / "pairs.csv", compared)
+    named = [c if isinstance(c, contrast_tests.Contrast) else contrast_tests.Contrast.parse(c)
+             for c in contrasts]
+    metrics = [m for m in METRICS if any(m in row for row in rows)]
+    tested = contrast_tests.evaluate(_cells(rows), named, metrics) if named else []
+    pools = contrast_tests.pooled(tested)
+    if tested:
+        _write_csv(out_dir / "contrasts.csv", tested + pools)
     for (task, metric), entries in _by_task_metric(summary).items():
         plot_metric(entries, out_dir / png_name(task, metric),
                     f"{title}: {task}, {METRIC_LABEL[metric]}")
     report = out_dir / "report.md"
-    report.write_text(_markdown(rows, summary, title, compared))
+    report.write_text(_markdown(rows, summary, title, compared, tested, pools, notes))
     return report
 
 
@@ -409,6 +384,10 @@ def main(argv=None) -> Path:
     parser.add_argument("--pairs", nargs="+", default=(), metavar="A:B",
                         help="also compare rule A with rule B (A − B, paired by seed), e.g. "
                              "prior:positional prior:rvar")
+    parser.add_argument("--contrasts", nargs="+", default=(), metavar="A:B[@MARGIN]",
+                        help="pre-registered contrasts A − B (Holm over all of a metric; "
+                             "MARGIN, a number or C:D/K, adds an equivalence test), e.g. "
+                             "oracle~shift:rvar prior~shift:positional~shift@oracle~shift:rvar/2")
     parser.add_argument("--tags", nargs="+", default=None, metavar="TAG",
                         help="one per RESULTS_CSV: that lab's rules are reported as RULE[TAG] "
                              "('' keeps the names), e.g. '' one-shot for a lab and its "
@@ -434,7 +413,7 @@ def main(argv=None) -> Path:
     if differing:
         print(f"{differing} rows found in several files differ in a metric: the first "
               "file's are kept", file=sys.stderr)
-    report = write_report(rows, args.paths[-1], args.title, pairs)
+    report = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts)
     print(report)
     return report
 

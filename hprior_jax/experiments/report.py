@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hprior_jax.experiments.scores import paired_t_test, task_scores
+from hprior_jax.experiments.scores import task_scores
+from hprior_jax.statistics import paired_t_test
 from hprior_jax.methods import registry
 from hprior_jax.plotting import read_eval_csv
 from hprior_jax.run_log import read_jsonl

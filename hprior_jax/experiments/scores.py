@@ -81,27 +81,3 @@ def task_scores(pbrl: dict[int, Curve], sac: dict[int, Curve], how: str = "mean-
             ref = shared
         out[seed] = normalized_score(curve, ref, how, min_reference, after_step)
     return out
-
-
-def paired_t_test(baseline, prior) -> tuple[float, float, int]:
-    """Two-tailed paired t-test with dependent means (appendix F): (t, p, pairs).
-
-    t is computed on baseline − PRIOR, the sign the appendix reports (negative t where PRIOR
-    scores higher). NaN pairs are dropped; with fewer than 2 pairs t and p are NaN."""
-    from scipy import stats
-
-    a, b = np.asarray(baseline, float), np.asarray(prior, float)
-    if a.shape != b.shape:
-        raise ValueError(f"paired samples differ in length: {a.shape} vs {b.shape}")
-    keep = ~(np.isnan(a) | np.isnan(b))
-    d = a[keep] - b[keep]
-    n = int(d.size)
-    if n < 2:
-        return float("nan"), float("nan"), n
-    sd = d.std(ddof=1)
-    if sd == 0:
-        t = 0.0 if d.mean() == 0 else float(np.copysign(np.inf, d.mean()))
-    else:
-        t = float(d.mean() / (sd / np.sqrt(n)))
-    p = float(2 * stats.t.sf(abs(t), n - 1))
-    return t, p, n

@@ -19,7 +19,9 @@ decides the credit α of each stored pair:
   oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
                  bound for any credit rule; the only rule that reads true rewards)
 
-A rule may also clip its targets α_t·R̂ to the reward's range, fit the prior on unlabelled
+A rule may also take the shifted target form α_t·(R̂ + T·c) − c instead of the paper's α_t·R̂
+(`shifts`, the rule named RULE~shift; prior/loss.py), clip its targets to the reward's range,
+fit the prior on unlabelled
 training segments too (`unlabelled`: prior/unlabelled.py) and have its own λ (`clips`,
 `rule_lams`): PRIOR's ablations and a λ sweep then run side by side, as rules of one program.
 A method whose update has other shapes (SURF: longer stored segments, an unlabelled pool)
@@ -66,7 +68,7 @@ from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import (credit_from_attention, segment_attention,
                                         segment_credit)
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
-from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
+from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha, target_shift
 from hprior_jax.prior.unlabelled import STREAM as UNLABELLED_STREAM
 from hprior_jax.prior.unlabelled import UnlabelledSegments, rows_of_pool, unlabelled_prior_term
 
@@ -95,6 +97,7 @@ class LabConfig:
     credits: tuple[str, ...]  # the credit of each rule (CREDITS)
     lam: float  # λ of every rule with a credit (the RL presets': 5 DMC, 1000 MetaWorld)
     clips: tuple[bool, ...] = ()  # per rule: targets clipped to [-1, 1] (empty: none)
+    shifts: tuple[bool, ...] = ()  # per rule: the shifted target form (empty: all raw)
     unlabelled: tuple[bool, ...] = ()  # per rule: the prior also on unlabelled segments
     unlabelled_segments: int = UNLABELLED_SEGMENTS  # drawn afresh each round (prior.unlabelled)
     rule_lams: tuple[float | None, ...] = ()  # per rule: its own λ instead of `lam` (None: lam)
@@ -126,7 +129,7 @@ class LabConfig:
         own = [r for r, c in zip(self.rules, self.credits) if c == OWN_PROGRAM]
         if own != [r for r, _ in self.own_rules]:
             raise ValueError(f"give the lab rule object of every own-program rule {own}")
-        for name in ("clips", "rule_lams", "unlabelled"):
+        for name in ("clips", "shifts", "rule_lams", "unlabelled"):
             if len(getattr(self, name)) not in (0, len(self.rules)):
                 raise ValueError(f"give one of {name} per rule, or none")
         bad = set(self.credits) - set(CREDITS) - {OWN_PROGRAM}
@@ -186,11 +189,13 @@ class GivenLabels:
 class RuleArgs:
     """What tells one rule from another inside the program (arrays, vmapped over rules):
     its credit (an index into CREDITS), λ of the prior term, whether its targets are clipped,
-    the weight of the bisimulation term and whether its prior also fits unlabelled segments."""
+    their form's shift c (prior.loss.prior_targets: 0 raw), the weight of the bisimulation
+    term and whether its prior also fits unlabelled segments."""
 
     credit: jax.Array
     lam: jax.Array
     clip: jax.Array
+    shift: jax.Array
     bisim_lam: jax.Array
     unlabelled: jax.Array
 
@@ -254,6 +259,9 @@ class Lab:
             lam=jnp.asarray([0.0 if c in NO_PRIOR else cfg.lam if lam is None else lam
                              for c, lam in zip(credits, pick(cfg.rule_lams, None))], jnp.float32),
             clip=jnp.asarray(pick(cfg.clips, False), bool),
+            shift=jnp.asarray([target_shift("shifted" if shifted else "raw",
+                                            cfg.reward.output_activation)
+                               for shifted in pick(cfg.shifts, False)], jnp.float32),
             bisim_lam=jnp.asarray([cfg.bisim_lam if c == "bisimulation" else 0.0
                                    for c in credits], jnp.float32),
             unlabelled=jnp.asarray(pick(cfg.unlabelled, False), bool))
@@ -372,13 +380,13 @@ class Lab:
                             alpha2=preferences.put_rows(cell.credit.alpha2, alpha[queries:], slot))
         prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
-        terms = (prior_term(rule.lam, credit, "raw", rule.clip),)
+        terms = (prior_term(rule.lam, credit, "raw", rule.clip, rule.shift),)
         if cfg.needs_unlabelled:  # every rule computes it (weight 0 but its rule's)
             terms += (unlabelled_prior_term(
                 rule.lam * rule.unlabelled,
                 self.unlabelled_segments(jax.random.fold_in(k_train, UNLABELLED_STREAM), ctx,
                                          train, prefs.capacity, rule.credit),
-                reward_cfg=cfg.reward, clip=rule.clip),)
+                reward_cfg=cfg.reward, clip=rule.clip, shift=rule.shift),)
         if cfg.needs_bisim:  # every rule computes it (weight 0 but the bisim rule's)
             transitions = episode_transitions(jax.random.fold_in(k_train, BISIM_STREAM), train,
                                               prefs.capacity, cfg.bisim_transitions)
@@ -396,7 +404,7 @@ class Lab:
                    "prior_grad_ratio": m["prior/loss/grad_ratio"],
                    # of the rule's own credit (uniform for pebble, which does not use it)
                    "target_out_of_range": unreachable_targets(params, prefs, credit,
-                                                              cfg.reward)}
+                                                              cfg.reward, shift=rule.shift)}
         if cfg.needs_unlabelled:
             metrics |= {"unlabelled_prior_loss": m["prior/unlabelled_loss"]}
         if cfg.needs_bisim:
@@ -637,5 +645,6 @@ def minibatch_size(labels: int, batch_size: int) -> int:
 
 
 # LabConfig fields that reach the programs as arguments or only the host schedule
-_ARGUMENTS = ("rules", "credits", "lam", "clips", "rule_lams", "bisim_lam", "seeds", "budgets")
+_ARGUMENTS = ("rules", "credits", "lam", "clips", "shifts", "rule_lams", "bisim_lam", "seeds",
+              "budgets")
 _PROGRAMS: dict = {}  # compiled lab programs of this process (see Lab._compiled)

@@ -20,7 +20,7 @@ from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM,
                                   UNLABELLED_SEGMENTS, WORLD_MODEL_CREDITS, GivenLabels, Lab,
                                   LabConfig)
-from hprior_jax.lab.metrics import reward_quality
+from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
@@ -40,13 +40,21 @@ def default_rules() -> list[str]:
     return [r for r in rules() if r not in ABLATIONS]
 
 
-def parse_rule(name: str) -> tuple[str, float | None]:
-    """RULE@LAMBDA -> (RULE, LAMBDA as a float): a rule with its own λ; RULE -> (RULE, None)."""
+SHIFTED = "~shift"  # RULE~shift: the rule with the shifted target form (prior/loss.py)
+
+
+def parse_rule(name: str) -> tuple[str, float | None, bool]:
+    """RULE[~shift][@LAMBDA] -> (RULE, LAMBDA as a float or None, whether the target form is
+    the shifted one): prior@25 is PRIOR with its own λ, oracle~shift the oracle credit with
+    the target α·(R̂ + T) − 1."""
     base, at, lam = name.partition("@")
+    rule, tilde, form = base.partition("~")
+    if tilde and "~" + form != SHIFTED:
+        raise ValueError(f"rule {name!r}: the only target form to ask for is RULE{SHIFTED}")
     if not at:
-        return name, None
+        return rule, None, bool(tilde)
     try:
-        return base, float(lam)
+        return rule, float(lam), bool(tilde)
     except ValueError:
         raise ValueError(f"rule {name!r}: write RULE@LAMBDA with a number, e.g. prior@25")
 
@@ -89,15 +97,16 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     known = rules()
     rule_names = list(rule_names or default_rules())
     parsed = [parse_rule(r) for r in rule_names]
-    unknown = [r for r, _ in parsed if r not in known]
+    unknown = [r for r, *_ in parsed if r not in known]
     if unknown:
         raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
     if len(set(rule_names)) < len(rule_names):
         raise ValueError(f"a rule is named twice: {rule_names}")
-    without_term = [r for r, lam in parsed
-                    if lam is not None and known[r] in (*NO_PRIOR, OWN_PROGRAM)]
+    without_term = [r for r, lam, shifted in parsed if (lam is not None or shifted)
+                    and known[r] in (*NO_PRIOR, OWN_PROGRAM)]
     if without_term:
-        raise ValueError(f"{without_term} train no prior term: @LAMBDA has nothing to weigh")
+        raise ValueError(f"{without_term} train no prior term: @LAMBDA or {SHIFTED} has "
+                         "nothing to change")
     if teacher not in TEACHERS:
         raise ValueError(f"unknown teacher {teacher!r}; available: {', '.join(TEACHERS)}")
     if TEACHERS[teacher].human:
@@ -111,7 +120,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     p, prior = rl.pebble, with_settings(rl.prior, prior_settings, refused=as_rules)
     # the bisimulation rule's λ_bisim and transitions from its method's preset
     bisim = next((presets.train_preset(data.task, r, preset).bisim
-                  for r, _ in parsed if known[r] == "bisimulation"), None)
+                  for r, *_ in parsed if known[r] == "bisimulation"), None)
     if p.segment_len != data.segment_len:
         raise ValueError(f"the dataset's segments are {data.segment_len} steps, the preset's "
                          f"{p.segment_len}")
@@ -120,17 +129,18 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     first_round = rl.num_seed_steps + p.num_unsup_steps
     updates = max(0, (data.info.get("steps", 0) - first_round) // prior.wm_every)
     tag = tag or ",".join(prior_settings or ())
-    credits = tuple(known[r] for r, _ in parsed)
+    credits = tuple(known[r] for r, *_ in parsed)
     if tag:
         rule_names = [f"{r}[{tag}]" if c in WORLD_MODEL_CREDITS else r
                       for r, c in zip(rule_names, credits)]
     return LabConfig(
         rules=tuple(rule_names), credits=credits,
         lam=prior.lam if lam is None else lam,
-        clips=tuple(r in ABLATIONS and ABLATIONS[r][1] for r, _ in parsed),
-        unlabelled=tuple(r in ABLATIONS and ABLATIONS[r][2] for r, _ in parsed),
+        clips=tuple(r in ABLATIONS and ABLATIONS[r][1] for r, *_ in parsed),
+        shifts=tuple(shifted for *_, shifted in parsed),
+        unlabelled=tuple(r in ABLATIONS and ABLATIONS[r][2] for r, *_ in parsed),
         unlabelled_segments=prior.unlabelled_segments or UNLABELLED_SEGMENTS,
-        rule_lams=tuple(lam for _, lam in parsed), budgets=tuple(budgets),
+        rule_lams=tuple(lam for _, lam, _ in parsed), budgets=tuple(budgets),
         queries_per_round=queries_per_round or p.queries_per_round,
         feed_type=feed_type or p.feed_type, large_batch=p.large_batch, one_shot=one_shot,
         seeds=tuple(range(seeds)) if isinstance(seeds, int) else tuple(seeds),
@@ -143,7 +153,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
                                          bisim_transitions=bisim.transitions_per_pair)),
         discount=rl.sac.discount,
         own_rules=tuple((r, registry.get(r).lab_rule(data.task, preset))
-                        for r, _ in parsed if known[r] == OWN_PROGRAM),
+                        for r, *_ in parsed if known[r] == OWN_PROGRAM),
         preference=PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
                                     lr=p.reward_lr),
         teacher=TEACHERS[teacher],
@@ -167,11 +177,45 @@ def score(rows: list[dict], data: Dataset) -> list[dict]:
     return out
 
 
+def save_predictions(path: Path, rows: list[dict]) -> Path:
+    """Every cell's held-out predictions r̂ [E, L] (compressed, float32) beside its seed,
+    rule and budget, so a later metric needs no retraining; written whole, then renamed."""
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, seed=np.asarray([r["seed"] for r in rows]),
+                        rule=np.asarray([r["rule"] for r in rows]),
+                        budget=np.asarray([r["budget"] for r in rows]),
+                        prediction=np.stack([r["prediction"] for r in rows]).astype(np.float32))
+    tmp.replace(path)
+    return path
+
+
+def report_notes(data: Dataset, diagnostics: list[dict]) -> list[str]:
+    """Paragraphs the report must show first: the world model's skill when it does not beat
+    persistence (then α is not evidence), and what uniform credit can reach at best."""
+    notes = []
+    skill = [d["wm/skill_vs_persistence"] for d in diagnostics]
+    if skill and np.mean(skill) <= 0:
+        notes.append(f"**WARNING: the world model does not predict** (skill over persistence "
+                     f"{np.mean(skill):+.3f}, mean of {len(skill)} seeds; "
+                     f"{sum(k > 0 for k in skill)} seeds above 0). Its α diagnostics and the "
+                     "rules that read it (prior, positional) are not evidence about what a "
+                     "predicting world model's α would do.")
+    ceiling = uniform_credit_ceiling(data.test_reward, data.segment_len)
+    notes.append(f"Uniform credit's ceiling on the held-out episodes (the true reward against "
+                 f"its own {data.segment_len}-step moving mean): Pearson "
+                 f"{ceiling['pearson']:.3f}, within-episode Pearson "
+                 f"{ceiling['episode_pearson']:.3f}.")
+    return notes
+
+
 def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
-            given: GivenLabels | None = None, reuse_world_models: bool = True) -> dict:
-    """Runs the sweep; writes OUT/run_info.json (time, memory, settings) and the report
-    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs). The report is
-    rewritten as each budget is reached, so a stopped lab keeps the budgets it reached.
+            given: GivenLabels | None = None, reuse_world_models: bool = True,
+            contrasts=()) -> dict:
+    """Runs the sweep; writes OUT/run_info.json (time, memory, settings), the report
+    (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs; `contrasts`:
+    the pre-registered ones, experiments.contrasts) and predictions.npz (every cell's
+    held-out r̂). The report is rewritten as each budget is reached, so a stopped lab keeps
+    the budgets it reached.
     `given`: labels given beforehand (a person's) instead of the teacher's.
     `reuse_world_models`: the seeds' world models come from the lab cache when a lab of the
     same dataset, seeds and world-model settings trained them (`world_model_cache`), and
@@ -184,12 +228,15 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
     cached = world_model_cache.cache_path(cfg, data) if (
         reuse_world_models and cfg.needs_world_model) else None
     lab = Lab(cfg, data, given, world_model_cache=cached)
-    rows = []
+    rows, predicted = [], []
     title = f"Reward-learning lab: {data.task}"
 
     def report_budget(reached: list[dict]) -> None:
+        predicted.extend(reached)
+        save_predictions(out / "predictions.npz", predicted)
         rows.extend(score(reached, data))
-        write_report(rows, out, title=title)
+        write_report(rows, out, title=title, contrasts=contrasts,
+                     notes=report_notes(data, lab.diagnostics))
 
     lab.run(progress, on_budget=report_budget)
     wall = time.perf_counter() - t0
@@ -201,6 +248,7 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
         "world_model_cache": None if cached is None else dict(
             path=str(cached), loaded=lab.world_model_loaded),
         "cells": cells, "adam_steps": lab.adam_steps,
+        "uniform_credit_ceiling": uniform_credit_ceiling(data.test_reward, data.segment_len),
         "ms_per_adam_step_per_cell": round(1000 * lab.seconds.get("rounds", 0.0)
                                            / max(lab.adam_steps * cells, 1), 2),
         "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),

@@ -38,7 +38,7 @@ from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import pair_credit, segment_credit
 from hprior_jax.prior.diagnostics import unreachable_targets, world_model_diagnostics
-from hprior_jax.prior.loss import PairCredit, prior_term, variant_alpha
+from hprior_jax.prior.loss import TARGETS, PairCredit, prior_term, target_shift, variant_alpha
 from hprior_jax.prior.unlabelled import replay_segments, rows_of_pool, unlabelled_prior_term
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
@@ -68,6 +68,11 @@ class PriorConfig:
     exclude_own_step: bool = False
     """Ablation (not in the paper): α without the query's own (last) step, renormalised over
     the others. In the reduced cheetah runs that step held about a third of α's mass."""
+    target: Literal["raw", "shifted"] = "raw"
+    """The prior's target form (prior/loss.py): "raw", the paper's α_t·R̂ (its sign follows
+    R̂, which the preference loss leaves free), or "shifted", α_t·(R̂ + T) − 1, the return
+    redistributed from the tanh head's floor. The paper is silent on R̂'s sign; raw stays the
+    default until a measurement shows a gain."""
     clip_targets: bool = False
     """Ablation (not in the paper): the targets α_t·R̂ clipped to [-1, 1], the tanh reward's
     range; unclipped, 1-12% of them were out of reach in the reduced cheetah runs."""
@@ -111,6 +116,8 @@ class PriorConfig:
             raise ValueError(f"--prior.wm-order must be one of {wm.PRETRAIN_ORDERS}")
         if self.unlabelled_segments < 0:
             raise ValueError("--prior.unlabelled-segments must be >= 0")
+        if self.target not in TARGETS:
+            raise ValueError(f"--prior.target must be one of {TARGETS}, got {self.target!r}")
         if self.wm_update_steps < 0:
             raise ValueError("--prior.wm-update-steps must be >= 0")
         if not 0.0 <= self.wm_dropout < 1.0:
@@ -143,6 +150,7 @@ class WorldModelPrior(Extension):
         self.wm_cfg = cfg.prior.world_model(kit.env.obs_size, kit.env.action_size,
                                             self.segment_len)
         self.first_round_step = cfg.num_seed_steps + cfg.pebble.num_unsup_steps
+        self.shift = target_shift(cfg.prior.target, reward_config(cfg.pebble).output_activation)
 
     # -- schedule --------------------------------------------------------------------------
     def event_steps(self) -> list[int]:
@@ -210,12 +218,14 @@ class WorldModelPrior(Extension):
                              query=p.attention_query, own_step=not p.exclude_own_step,
                              obs_scaler=scaler)
         ms = ms.replace(ext=ms.ext.replace(credit=credit))
-        terms = (prior_term(ms.ext.lam, credit, self.variant, clip=p.clip_targets),)
+        terms = (prior_term(ms.ext.lam, credit, self.variant, clip=p.clip_targets,
+                            shift=self.shift),)
         if p.unlabelled_segments:
             terms += (unlabelled_prior_term(
                 ms.ext.lam, self.unlabelled_segments(rs, ms.ext.wm.params, ms.prefs.capacity,
                                                      scaler),
-                reward_cfg=reward_config(self.cfg.pebble), clip=p.clip_targets),)
+                reward_cfg=reward_config(self.cfg.pebble), clip=p.clip_targets,
+                shift=self.shift),)
         return terms, ms
 
     def unlabelled_segments(self, rs: RunState, params, capacity: int, scaler):
@@ -241,7 +251,7 @@ class WorldModelPrior(Extension):
         mask2 = jnp.concatenate([real, real])
         return {"prior/attention_entropy": jnp.sum(ent * mask2) / n,
                 "prior/target_out_of_range": unreachable_targets(
-                    ms.reward, prefs, credit, reward_cfg, self.variant)}
+                    ms.reward, prefs, credit, reward_cfg, self.variant, self.shift)}
 
     # -- host side -------------------------------------------------------------------------
     def run_event(self, rs: RunState, step: int):

@@ -20,6 +20,8 @@ diagnostics on fixed segments (they read true rewards: metrics only, never train
 """
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 
@@ -87,14 +89,16 @@ def world_model_diagnostics(params: wm.WorldModelParams, obs: jax.Array, act: ja
 
 
 def unreachable_targets(reward_params, prefs: PreferenceStore, credit: PairCredit, reward_cfg,
-                        variant: str = "raw") -> jax.Array:
-    """Share of the targets α_t·R̂_k beyond [-1, 1] over the stored pairs' segments (both
-    sides, the credit `variant` applied), mean over members k."""
+                        variant: str = "raw", shift=0.0) -> jax.Array:
+    """Share of the prior's targets (`prior.loss.prior_targets` of form `shift`) beyond
+    [-1, 1] over the stored pairs' segments (both sides, the credit `variant` applied), mean
+    over members k."""
     real = jnp.arange(prefs.capacity) < prefs.count
     mask2 = jnp.concatenate([real, real])
     alpha = variant_alpha(jnp.concatenate([credit.alpha1, credit.alpha2]), variant)
     obs = jnp.concatenate([prefs.obs1, prefs.obs2])
     act = jnp.concatenate([prefs.act1, prefs.act2])
     r = member_rewards(reward_params, obs, act, reward_cfg)  # [K, 2C, T]
-    out = jax.vmap(lambda r_k: jax.vmap(target_saturation)(r_k, alpha))(r)  # [K, 2C]
+    saturation = jax.vmap(partial(target_saturation, shift=shift))
+    out = jax.vmap(lambda r_k: saturation(r_k, alpha))(r)  # [K, 2C]
     return jnp.sum(out.mean(0) * mask2) / (jnp.maximum(prefs.count, 1).astype(jnp.float32) * 2)

@@ -51,19 +51,21 @@ def rows_of_pool(obs: jax.Array, act: jax.Array, alpha: jax.Array,
 
 
 def unlabelled_prior_loss(params, rows: UnlabelledSegments, mask: jax.Array, *,
-                          reward_cfg: RewardConfig, clip=False) -> jax.Array:
+                          reward_cfg: RewardConfig, clip=False, shift=0.0) -> jax.Array:
     """rows leaves [K, b, ...] (each member its own rows), mask [b] (real minibatch rows) ->
     Σ_k of the prior loss on the rows' segments (`prior.loss.prior_loss`)."""
     step_r = per_member_rewards(params, rows.obs, rows.act, reward_cfg)  # [K, b, T]
-    return prior_loss(step_r, rows.alpha, mask, clip)[0]
+    return prior_loss(step_r, rows.alpha, mask, clip, shift)[0]
 
 
 def unlabelled_prior_term(lam, segments: UnlabelledSegments, *, reward_cfg: RewardConfig,
-                          clip=False) -> RewardTerm:
+                          clip=False, shift=0.0) -> RewardTerm:
     """The prior on unlabelled segments as a reward term: "prior/unlabelled_loss", weight λ
-    (a float or a traced scalar), data = `segments` (leaves [C, ...])."""
+    (a float or a traced scalar), data = `segments` (leaves [C, ...]); `clip` and `shift`
+    as in `prior.loss.prior_targets`."""
 
     def loss(step_r1, step_r2, rows: UnlabelledSegments, mask, params):
-        return unlabelled_prior_loss(params, rows, mask, reward_cfg=reward_cfg, clip=clip)
+        return unlabelled_prior_loss(params, rows, mask, reward_cfg=reward_cfg, clip=clip,
+                                     shift=shift)
 
     return RewardTerm(name="prior/unlabelled_loss", weight=lam, loss=loss, data=segments)
