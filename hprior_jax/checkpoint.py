@@ -25,7 +25,7 @@ def _flat(tree) -> dict:
 
 
 class Checkpointer:
-    def __init__(self, directory: Path, max_to_keep: int = 2):
+    def __init__(self, directory: Path, max_to_keep: int | None = 2):
         self.directory = Path(directory).absolute()
         self._manager = ocp.CheckpointManager(
             self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep,

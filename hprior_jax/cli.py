@@ -55,7 +55,7 @@ def _train(argv: list[str]) -> int:
     known, rest = pre.parse_known_args(argv)
     help_asked = "-h" in rest or "--help" in rest
 
-    from hprior_jax import presets, provenance
+    from hprior_jax import dir_lock, presets, provenance
     from hprior_jax.loop import devices, host, run_dir as run_dirs
     from hprior_jax.loop.engine import Engine
     from hprior_jax.setup_jax import enable_compilation_cache
@@ -63,10 +63,20 @@ def _train(argv: list[str]) -> int:
     # before anything touches a device: with several processes the mesh spans them all
     several = not help_asked and devices.initialize_distributed()
 
+    lock = None
     if known.resume and not help_asked:
         # the flags over the run's own config: resume_config refuses what may not change
         # (--task, --algo and --preset included: they are config fields too)
         run_dir = Path(known.resume)
+        if "--out" in rest or any(a.startswith("--out=") for a in rest):
+            raise ValueError("--resume continues the run in its own directory: drop --out "
+                             f"(or copy {run_dir} there and resume the copy)")
+        if devices.is_primary():
+            run_dirs.load_run_config(run_dir)  # a run directory at all, before locking it
+            lock = dir_lock.hold(run_dir)  # before anything in it changes
+        note = run_dirs.settle_extension(run_dir, run_dirs.latest_checkpoint_step(run_dir))
+        if note:
+            print(note, file=sys.stderr, flush=True)
         saved = run_dirs.load_run_config(run_dir)
         default = (saved if known.teacher is None
                    else presets.with_teacher(saved, known.teacher))
@@ -96,10 +106,14 @@ def _train(argv: list[str]) -> int:
         devices.barrier("run directory checked")
         if devices.is_primary():
             run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
+            lock = dir_lock.hold(Path(cfg.out))
         devices.barrier("run directory made")
         run_dir = Path(cfg.out)
         saved_capacity = None
     print(f"run directory: {run_dir}", flush=True)
+    if known.resume:
+        step = run_dirs.latest_checkpoint_step(run_dir)
+        print(f"resuming from step {step or 0} of {cfg.steps}", flush=True)
     try:
         host.run(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
                  saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known),
@@ -109,6 +123,9 @@ def _train(argv: list[str]) -> int:
         print(f"\n{e}. Continue with:\n  hprior train --resume {run_dir}", file=sys.stderr,
               flush=True)
         return 130
+    finally:
+        if lock is not None:
+            lock.release()
     print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
           "tb/ (TensorBoard), checkpoints/", flush=True)
     return 0
@@ -223,7 +240,8 @@ def _eval(argv: list[str]) -> int:
                     "RUN/videos/ (needs OSMesa: apt-get install libosmesa6).")
     parser.add_argument("--run", required=True, help="a run directory of `hprior train`")
     parser.add_argument("--step", type=int, default=None,
-                        help="which checkpoint (default: the latest; a run keeps its last two)")
+                        help="which checkpoint (default: the newest readable one; a run keeps its "
+                             "last --keep-checkpoints, 2 unless set)")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--video", action="store_true")
     args = parser.parse_args(argv)
@@ -312,9 +330,12 @@ def _label(argv: list[str]) -> int:
 
     folder = QueryFolder(args.dir)
     options = ServerOptions(args.host, args.port, args.token).resolved()
-    print(f"labelling {args.dir}: open {options.url()} (Ctrl-C stops; answers are saved as "
-          "given)", flush=True)
-    serve(folder, options)
+    from hprior_jax import dir_lock
+
+    with dir_lock.hold(Path(args.dir)):  # one server answers into a folder
+        print(f"labelling {args.dir}: open {options.url()} (Ctrl-C stops; answers are saved "
+              "as given)", flush=True)
+        serve(folder, options)
     return 0
 
 
@@ -377,6 +398,7 @@ def _grid(argv: list[str]) -> int:
                              "the estimated wall time")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    from hprior_jax import dir_lock
     from hprior_jax.experiments.grid import run_grid
     from hprior_jax.loop import host
     from hprior_jax.setup_jax import enable_compilation_cache
@@ -389,8 +411,10 @@ def _grid(argv: list[str]) -> int:
                       if v is not None})
     enable_compilation_cache()
     try:
-        run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
-                 progress=not args.no_progress, devices=args.devices, estimate=args.estimate)
+        with dir_lock.hold(Path(args.out)):  # one grid per results directory
+            run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
+                     progress=not args.no_progress, devices=args.devices,
+                     estimate=args.estimate)
     except host.Interrupted as e:
         print(f"\n{e}. Continue the grid with the same command.", file=sys.stderr, flush=True)
         return 130
@@ -558,9 +582,11 @@ def _methods(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from hprior_jax.dir_lock import DirInUse
+
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
-        print(USAGE)
+        print(USAGE, file=sys.stdout if argv else sys.stderr)  # bare `hprior`: a usage error
         return 0 if argv else 2
     if argv[0] in ("--version", "-V"):
         from hprior_jax.provenance import version_string
@@ -577,7 +603,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return commands[command](rest)
     except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError,
-            PermissionError) as e:
+            PermissionError, DirInUse) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # before training started (a run saves on its own Ctrl-C)

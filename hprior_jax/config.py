@@ -41,6 +41,9 @@ class RunConfig:
     eval_every: int = 10_000
     num_eval_episodes: int = 10
     checkpoint_every: int = 50_000
+    keep_checkpoints: int = 2
+    """Checkpoints kept (the newest); 0 keeps every one (with --checkpoint-every equal to
+    --eval-every, `hprior eval --step` then reaches every evaluation)."""
     chunk_steps: int = 1000
     """Env steps per compiled chunk (one host round-trip per chunk)."""
     replay_capacity: int = 0
@@ -86,6 +89,9 @@ class RunConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"--{name.replace('_', '-')} must be positive, "
                                  f"got {getattr(self, name)}")
+        if self.keep_checkpoints < 0:
+            raise ValueError(f"--keep-checkpoints must be >= 0 (0 keeps all), got "
+                             f"{self.keep_checkpoints}")
         if not 0 <= self.num_seed_steps <= self.steps:
             raise ValueError(f"--num-seed-steps ({self.num_seed_steps}) must be between 0 "
                              f"and --steps ({self.steps})")

@@ -21,7 +21,7 @@ from hprior_jax.buffers import replay
 from hprior_jax.labelling.teacher import LabellingStopped
 from hprior_jax.loop import devices
 from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import legacy_checkpoint_name
+from hprior_jax.loop.run_dir import commit_extension, legacy_checkpoint_name
 from hprior_jax.loop.state import RunState
 
 UNCHECKED = ("episode/", "perf/")  # metric groups that may legitimately be non-finite or are ours
@@ -80,7 +80,8 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     run_dir = Path(run_dir)
     engine = engine or Engine(cfg)
     seeds = list(cfg.seeds)
-    ckpt = Checkpointer(run_dir / "checkpoints")
+    keep = cfg.keep_checkpoints or None  # None: orbax keeps every one
+    ckpt = Checkpointer(run_dir / "checkpoints", max_to_keep=keep)
     step = 0
     if compile_ahead not in AHEAD_WHEN:
         raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
@@ -94,7 +95,12 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
     # the first states, the first chunk's program: counted with the first chunk
     start_compile_s = sum(engine.compile_seconds.values())
     if resume and ckpt.latest_step() is not None:
-        step, rs = restore_latest(ckpt, rs)
+        broken = []
+        step, rs = restore_latest(ckpt, rs, on_unreadable=lambda bad, error: broken.append(
+            _set_aside(run_dir, bad, error)))
+        if broken:  # the manager lists the steps it found when it was opened
+            ckpt.close()
+            ckpt = Checkpointer(run_dir / "checkpoints", max_to_keep=keep)
     if rs.replay.capacity != cfg.capacity:
         ring = rs.replay.replace(size=devices.fetch(rs.replay.size),
                                  index=devices.fetch(rs.replay.index))
@@ -130,7 +136,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
             if step in events:  # e.g. a feedback round: before this step's update
                 if engine.method.asks_person and last_ckpt != step:
                     # a person may stop the run while the round waits: it resumes from here
-                    ckpt.save(step, rs)
+                    _save(ckpt, step, rs, run_dir, bar)
                     last_ckpt = step
                 waited = engine.person.waited_s if engine.person is not None else 0.0
                 with timer("event_s"), _stopped_waiting(run_dir, step):
@@ -176,7 +182,7 @@ def run(cfg, run_dir: Path, resume: bool = False, progress: bool = True,
                     max_chunks is not None and chunks == max_chunks):
                 log.flush()
                 with timer("checkpoint_s"):
-                    ckpt.save(step, rs)
+                    _save(ckpt, step, rs, run_dir, bar)
                 last_ckpt = step
             perf = {"perf/env_steps_per_s": length * len(seeds) / max(timer.seconds["chunk_s"],
                                                                       1e-9)}
@@ -252,12 +258,59 @@ def _stopped_waiting(run_dir: Path, step: int):
         raise Interrupted(run_dir, step, str(e)) from None
 
 
-def restore_latest(ckpt, like: RunState, step: int | None = None):
-    """The checkpoint at `step` (default: the latest), written by today's state layout or
-    the first one."""
-    stored = ckpt.stored_names(step)
-    legacy = any(name.startswith(".extra") for name in stored)
-    return ckpt.restore(like, step, rename=legacy_checkpoint_name if legacy else None)
+def _save(ckpt, step: int, rs: RunState, run_dir: Path, bar) -> None:
+    """A checkpoint, then a pending extension of the run's budget becomes its config (it
+    now has a checkpoint it can resume from)."""
+    ckpt.save(step, rs)
+    if devices.is_primary():
+        note = commit_extension(run_dir)
+        if note:
+            bar.write(note)
+
+
+class CheckpointUnreadable(ValueError):
+    """No checkpoint of a run could be restored; the message names the newest and why."""
+
+
+def restore_latest(ckpt, like: RunState, step: int | None = None, on_unreadable=None):
+    """The checkpoint at `step`, or by default the newest one that restores (written by
+    today's state layout or the first one). A newer one that does not (a truncated or
+    missing file) is passed to `on_unreadable(step, error)` and the next older is tried;
+    without `on_unreadable`, or when none restores, CheckpointUnreadable names it."""
+    candidates = [step] if step is not None else sorted(ckpt.all_steps(), reverse=True)
+    for i, candidate in enumerate(candidates):
+        try:
+            stored = ckpt.stored_names(candidate)
+            legacy = any(name.startswith(".extra") for name in stored)
+            return ckpt.restore(like, candidate,
+                                rename=legacy_checkpoint_name if legacy else None)
+        except Exception as e:  # orbax raises many kinds for a damaged checkpoint
+            if on_unreadable is None or i + 1 == len(candidates):
+                raise CheckpointUnreadable(
+                    f"the checkpoint at step {candidate} in {ckpt.directory} cannot be "
+                    f"restored: {_first_line(e)}") from e
+            on_unreadable(candidate, e)
+    raise CheckpointUnreadable(f"{ckpt.directory} holds no checkpoint")
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}"[:300]
+
+
+def _set_aside(run_dir: Path, step: int, error: BaseException) -> Path:
+    """Moves the unreadable checkpoint of `step` to RUN/broken_checkpoints/ (kept for a
+    post-mortem, out of the way of the next save at that step) and says so in one line."""
+    src = Path(run_dir) / "checkpoints" / str(step)
+    dest = Path(run_dir) / "broken_checkpoints" / str(step)
+    n = 1
+    while dest.exists():
+        dest, n = Path(run_dir) / "broken_checkpoints" / f"{step}.{n}", n + 1
+    dest.parent.mkdir(exist_ok=True)
+    src.rename(dest)
+    print(f"the checkpoint at step {step} cannot be restored ({_first_line(error)}); moved "
+          f"to {dest}, resuming from the newest readable one", file=sys.stderr, flush=True)
+    return dest
 
 
 def _finite_or_raise(metrics: dict, step0: int, step1: int, seeds, run_dir, last_ckpt):

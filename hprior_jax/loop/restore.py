@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,11 +34,12 @@ class Restored:
 
 
 def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored:
-    """The checkpoint at `step` (default: the latest) of `run_dir`; `overrides` replace
-    config fields that do not change the state's shapes (e.g. num_eval_episodes)."""
+    """The checkpoint at `step` (default: the newest that restores; a newer damaged one is
+    named in one line on stderr and skipped) of `run_dir`; `overrides` replace config fields
+    that do not change the state's shapes (e.g. num_eval_episodes)."""
     from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.loop.engine import Engine
-    from hprior_jax.loop.host import restore_latest
+    from hprior_jax.loop.host import CheckpointUnreadable, restore_latest
     from hprior_jax.loop.run_dir import load_run_config
 
     run_dir = Path(run_dir)
@@ -51,12 +53,24 @@ def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored
             raise ValueError(f"--step {step}: {run_dir} keeps checkpoints at steps "
                              f"{', '.join(map(str, steps))} only")
         engine = Engine(cfg)
-        # the replay capacity the checkpoint was written with (a budget extended on resume
-        # grew the buffer of later checkpoints only)
-        capacity = ckpt.stored_shape(".replay.reward", step)[1]
-        # a real initial state, not shapes: leaves a checkpoint lacks keep its values
-        like = engine.init_seeds(list(cfg.seeds), capacity=capacity)
-        step, state = restore_latest(ckpt, like, step)
+        candidates = [step] if step is not None else steps[::-1]
+        initial = {}  # a real initial state per replay capacity: leaves a checkpoint lacks
+        for i, candidate in enumerate(candidates):
+            try:
+                # the capacity the checkpoint was written with (a budget extended on resume
+                # grew the buffer of later checkpoints only)
+                capacity = ckpt.stored_shape(".replay.reward", candidate)[1]
+                if capacity not in initial:
+                    initial[capacity] = engine.init_seeds(list(cfg.seeds), capacity=capacity)
+                found, state = restore_latest(ckpt, initial[capacity], candidate)
+                break
+            except Exception as e:  # a damaged checkpoint: metadata or data
+                reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                if i + 1 == len(candidates):
+                    raise CheckpointUnreadable(f"the checkpoint at step {candidate} in "
+                                               f"{run_dir} cannot be restored: {reason}") from e
+                print(f"the checkpoint at step {candidate} cannot be restored ({reason[:200]});"
+                      f" using step {candidates[i + 1]}", file=sys.stderr, flush=True)
     finally:
         ckpt.close()
-    return Restored(cfg, engine, step, state)
+    return Restored(cfg, engine, found, state)

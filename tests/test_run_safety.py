@@ -1,0 +1,153 @@
+"""A run directory is never left broken: an extension of the budget becomes the run's only
+once it has a checkpoint (a stop before that rolls it back, one after it commits), one
+writer per directory (two real processes), and a damaged newest checkpoint is skipped for
+the newest readable one by resume and eval."""
+import csv
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from hprior_jax import cli, dir_lock
+from hprior_jax.loop import host
+from hprior_jax.loop.restore import restore_run
+from hprior_jax.loop.run_dir import EXTENDING, load_run_config
+from tests.test_life_cycle import TOY
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _train(*args) -> int:
+    return cli.main(["train", *TOY, "--no-progress", *args])
+
+
+def _rows(path):
+    return list(csv.reader(open(path, newline="")))
+
+
+def _same_state(a: Path, b: Path):
+    for x, y in zip(jax.tree.leaves(restore_run(a).state), jax.tree.leaves(restore_run(b).state),
+                    strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A finished 80-step run (replay capacity = its budget, so an extension grows it)."""
+    out = tmp_path_factory.mktemp("safety") / "base"
+    assert _train("--steps", "80", "--checkpoint-every", "40", "--seeds", "1", "2",
+                  "--out", str(out)) == 0
+    return out
+
+
+def test_an_extension_stopped_before_its_checkpoint_rolls_back_and_one_after_commits(
+        base, tmp_path, monkeypatch, capsys):
+    clean, before, after = (tmp_path / n for n in ("clean", "before", "after"))
+    for d in (clean, before, after):
+        shutil.copytree(base, d)
+    assert _train("--resume", str(clean), "--steps", "120") == 0  # the uninterrupted one
+
+    # stopped while restoring: nothing of the extension was saved
+    real_run = host.run
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(host, "run", stopped)
+    assert _train("--resume", str(before), "--steps", "120") == 130
+    monkeypatch.setattr(host, "run", real_run)
+    assert load_run_config(before).steps == 80 and (before / EXTENDING).exists()
+    capsys.readouterr()
+    assert _train("--resume", str(before)) == 0  # as configured: nothing left to train
+    assert "rolled back" in capsys.readouterr().err and not (before / EXTENDING).exists()
+    assert _train("--resume", str(before), "--steps", "120") == 0
+
+    # stopped (kill -9 alike) right after the extension's first checkpoint, before the commit
+    real_commit = host.commit_extension
+    monkeypatch.setattr(host, "commit_extension", lambda run_dir: (_ for _ in ()).throw(
+        KeyboardInterrupt()))
+    assert _train("--resume", str(after), "--steps", "120") == 130
+    monkeypatch.setattr(host, "commit_extension", real_commit)
+    assert load_run_config(after).steps == 80  # not yet the run's ...
+    capsys.readouterr()
+    assert _train("--resume", str(after)) == 0  # ... until the next start sees the checkpoint
+    assert "had checkpointed" in capsys.readouterr().err
+    assert load_run_config(after).steps == 120 and (after / "config.steps80.json").exists()
+
+    for d in (before, after):
+        assert _rows(d / "eval.csv") == _rows(clean / "eval.csv")
+        _same_state(d, clean)
+
+
+def _holder(directory: Path) -> subprocess.Popen:
+    """Another real process that holds `directory`'s lock until killed."""
+    code = ("import sys, time; from hprior_jax import dir_lock; "
+            "dir_lock.hold(sys.argv[1]); print('held', flush=True); time.sleep(600)")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(directory)], cwd=ROOT,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_a_directory_has_one_writer_and_a_dead_holders_lock_is_taken_over(base, tmp_path,
+                                                                           capsys):
+    run = tmp_path / "run"
+    shutil.copytree(base, run)
+    holder = _holder(run)
+    try:
+        before = (run / "eval.csv").read_text()
+        assert _train("--resume", str(run), "--steps", "120") == 2
+        err = capsys.readouterr().err
+        assert f"{run} is in use by PID {holder.pid} (started " in err and err.count("\n") == 1
+        assert (run / "eval.csv").read_text() == before and not (run / EXTENDING).exists()
+        with pytest.raises(dir_lock.DirInUse):
+            dir_lock.hold(run)
+        grid_dir = tmp_path / "grid"
+        grid_holder = _holder(grid_dir)
+        assert cli.main(["grid", "--tasks", "toy_point", "--algos", "sac", "--out",
+                         str(grid_dir)]) == 2
+        assert "is in use by PID" in capsys.readouterr().err
+        grid_holder.kill()
+    finally:
+        holder.kill()
+        holder.wait()
+    time.sleep(0.1)
+    lock = dir_lock.hold(run)  # the holder is gone: its lock with it
+    lock.release()
+    assert _train("--resume", str(run), "--steps", "120") == 0
+
+
+def _truncate_a_file_of(checkpoint: Path):
+    files = sorted((p for p in checkpoint.rglob("*") if p.is_file() and p.stat().st_size > 64),
+                   key=lambda p: -p.stat().st_size)
+    with open(files[0], "r+b") as f:
+        f.truncate(files[0].stat().st_size // 2)
+
+
+def test_a_damaged_newest_checkpoint_is_skipped_by_eval_and_resume(base, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(base, run)
+    _truncate_a_file_of(run / "checkpoints" / "80")
+    capsys.readouterr()
+    assert cli.main(["eval", "--run", str(run), "--episodes", "2"]) == 0
+    out = capsys.readouterr()
+    assert "at step 40" in out.out and "step 80 cannot be restored" in out.err
+    assert out.err.count("\n") == 1 and "Traceback" not in out.err
+    assert _train("--resume", str(run)) == 0  # from step 40 back to 80
+    err = capsys.readouterr().err
+    assert "moved to" in err and (run / "broken_checkpoints" / "80").exists()
+    assert _rows(run / "eval.csv") == _rows(base / "eval.csv")
+    _same_state(run, base)
+
+
+def test_keep_checkpoints_zero_keeps_every_one(tmp_path):
+    out = tmp_path / "all"
+    assert _train("--steps", "80", "--checkpoint-every", "20", "--keep-checkpoints", "0",
+                  "--out", str(out)) == 0
+    assert sorted(int(p.name) for p in (out / "checkpoints").iterdir()
+                  if p.name.isdigit()) == [20, 40, 60, 80]
