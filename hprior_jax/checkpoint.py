@@ -4,10 +4,23 @@ Keys are raw uint32 arrays, so the state restores bit-exactly and resuming conti
 same random streams as an uninterrupted run."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import jax
 import orbax.checkpoint as ocp
+
+
+class _NoMissingMetadataWarning(logging.Filter):
+    """Orbax warns through absl, on every read of a checkpoint's leaf metadata, that the
+    item's folder has no _CHECKPOINT_METADATA (the manager keeps it one level up): a line
+    that says nothing to a user."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "_CHECKPOINT_METADATA" not in record.getMessage()
+
+
+logging.getLogger("absl").addFilter(_NoMissingMetadataWarning())
 
 
 def _with_path(tree):

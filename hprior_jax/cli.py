@@ -55,6 +55,22 @@ def _train(argv: list[str]) -> int:
     known, rest = pre.parse_known_args(argv)
     help_asked = "-h" in rest or "--help" in rest
 
+    from hprior_jax.loop import host
+
+    # Ctrl-C from here on is a request, never an exception inside JAX's callbacks: before
+    # anything is written it ends the command; after, the run checkpoints and stops
+    stop, locks = host.StopRequest(), []
+    try:
+        return _train_run(argv, known, rest, help_asked, stop, locks)
+    finally:
+        for lock in locks:
+            lock.release()
+        stop.restore()
+
+
+def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
+    """`hprior train` after the SIGINT handler is in place; the run directory's lock, once
+    held, goes into `locks` (released by the caller whatever happens)."""
     from hprior_jax import dir_lock, presets, provenance
     from hprior_jax.loop import devices, host, run_dir as run_dirs
     from hprior_jax.loop.engine import Engine
@@ -63,7 +79,6 @@ def _train(argv: list[str]) -> int:
     # before anything touches a device: with several processes the mesh spans them all
     several = not help_asked and devices.initialize_distributed()
 
-    lock = None
     if known.resume and not help_asked:
         # the flags over the run's own config: resume_config refuses what may not change
         # (--task, --algo and --preset included: they are config fields too)
@@ -73,7 +88,7 @@ def _train(argv: list[str]) -> int:
                              f"(or copy {run_dir} there and resume the copy)")
         if devices.is_primary():
             run_dirs.load_run_config(run_dir)  # a run directory at all, before locking it
-            lock = dir_lock.hold(run_dir)  # before anything in it changes
+            locks.append(dir_lock.hold(run_dir))  # before anything in it changes
         note = run_dirs.settle_extension(run_dir, run_dirs.latest_checkpoint_step(run_dir))
         if note:
             print(note, file=sys.stderr, flush=True)
@@ -106,10 +121,13 @@ def _train(argv: list[str]) -> int:
         devices.barrier("run directory checked")
         if devices.is_primary():
             run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
-            lock = dir_lock.hold(Path(cfg.out))
+            locks.append(dir_lock.hold(Path(cfg.out)))
         devices.barrier("run directory made")
         run_dir = Path(cfg.out)
         saved_capacity = None
+    if stop.requested:  # during the checks and compiles above: nothing was trained
+        print("interrupted", file=sys.stderr)
+        return 130
     print(f"run directory: {run_dir}", flush=True)
     if known.resume:
         step = run_dirs.latest_checkpoint_step(run_dir)
@@ -117,15 +135,13 @@ def _train(argv: list[str]) -> int:
     try:
         host.run(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
                  saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known),
+                 interrupt=stop,
                  compile_ahead="off" if known.no_compile_ahead
                  else known.compile_ahead.replace("-", "_"))
     except host.Interrupted as e:
         print(f"\n{e}. Continue with:\n  hprior train --resume {run_dir}", file=sys.stderr,
               flush=True)
         return 130
-    finally:
-        if lock is not None:
-            lock.release()
     print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
           "tb/ (TensorBoard), checkpoints/", flush=True)
     return 0
@@ -143,7 +159,9 @@ def _parse_config(default, args: list[str], **kw):
 
     def raise_value_error(event):
         if isinstance(event, InstantiationFailure):
-            raise ValueError(event.message)
+            flag = getattr(event.argument, "display_name", None)
+            # a value of the wrong type ("abc" for --steps): name the flag it was given to
+            raise ValueError(f"{flag()}: {event.message}" if flag else event.message)
 
     with on_parse_error(raise_value_error):
         return tyro.cli(type(default), default=default, args=args, prog="hprior train", **kw)
@@ -332,7 +350,7 @@ def _label(argv: list[str]) -> int:
     options = ServerOptions(args.host, args.port, args.token).resolved()
     from hprior_jax import dir_lock
 
-    with dir_lock.hold(Path(args.dir)):  # one server answers into a folder
+    with dir_lock.DirLock(Path(args.dir)):  # one server answers into a folder
         print(f"labelling {args.dir}: open {options.url()} (Ctrl-C stops; answers are saved "
               "as given)", flush=True)
         serve(folder, options)
@@ -398,7 +416,6 @@ def _grid(argv: list[str]) -> int:
                              "the estimated wall time")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    from hprior_jax import dir_lock
     from hprior_jax.experiments.grid import run_grid
     from hprior_jax.loop import host
     from hprior_jax.setup_jax import enable_compilation_cache
@@ -411,10 +428,8 @@ def _grid(argv: list[str]) -> int:
                       if v is not None})
     enable_compilation_cache()
     try:
-        with dir_lock.hold(Path(args.out)):  # one grid per results directory
-            run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
-                     progress=not args.no_progress, devices=args.devices,
-                     estimate=args.estimate)
+        run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
+                 progress=not args.no_progress, devices=args.devices, estimate=args.estimate)
     except host.Interrupted as e:
         print(f"\n{e}. Continue the grid with the same command.", file=sys.stderr, flush=True)
         return 130
@@ -606,6 +621,10 @@ def main(argv: list[str] | None = None) -> int:
             PermissionError, DirInUse) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # disk full, permission lost mid-run: the path and the cause
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # before training started (a run saves on its own Ctrl-C)
         print("interrupted", file=sys.stderr)
         return 130

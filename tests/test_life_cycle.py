@@ -246,12 +246,23 @@ def test_render_frames_and_video(tmp_path):
 
 # -- the command line ------------------------------------------------------------------------
 
-def test_progress_bar_has_one_rate_and_an_eta(capsys):
-    bar = host._ProgressBar(total=1000, initial=0, enabled=True, num_seeds=2, has_success=True)
-    bar.evaluated(-3.0, 0.5, seconds=0.1)
-    bar.advance(100, 0.5)  # 100 steps per seed in 0.5 s of training time, 0.1 s evaluating
-    bar.close()
-    line = capsys.readouterr().err.strip().splitlines()[-1].split("\r")[-1]
+def test_progress_bar_has_one_rate_and_an_eta(capsys, monkeypatch):
+    def one_evaluation():
+        bar = host._ProgressBar(total=1000, initial=0, enabled=True, num_seeds=2,
+                                has_success=True)
+        bar.evaluated(-3.0, 0.5, seconds=0.1)
+        bar.advance(100, 0.5)  # 100 steps per seed in 0.5 s of training, 0.1 s evaluating
+        bar.close()
+        return capsys.readouterr()
+
+    # a log file (capsys: not a terminal): one plain line per evaluation, no \r frames
+    logged = one_evaluation()
+    assert "\r" not in logged.out + logged.err
+    line = logged.out.strip().splitlines()[-1]
+    assert line.startswith("step 100/1000: 400 env steps/s, ETA 0:00:04"), line
+    assert "success 50%" in line and "evaluation 20% of the time" in line, line
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: the bar
+    line = one_evaluation().err.strip().splitlines()[-1].split("\r")[-1]
     assert "400 env steps/s, ETA 0:00:04" in line and line.count("/s") == 1, line
     assert "success 50%" in line and "evaluation 20% of the time" in line, line
 

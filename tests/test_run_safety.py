@@ -113,6 +113,13 @@ def test_a_directory_has_one_writer_and_a_dead_holders_lock_is_taken_over(base, 
                          str(grid_dir)]) == 2
         assert "is in use by PID" in capsys.readouterr().err
         grid_holder.kill()
+        folder = tmp_path / "queries"
+        folder.mkdir()
+        (folder / "queries.jsonl").write_text("")  # a query folder (empty)
+        folder_holder = _holder(folder)
+        assert cli.main(["label", "--dir", str(folder), "--port", "0"]) == 2
+        assert "is in use by PID" in capsys.readouterr().err
+        folder_holder.kill()
     finally:
         holder.kill()
         holder.wait()
@@ -151,3 +158,83 @@ def test_keep_checkpoints_zero_keeps_every_one(tmp_path):
                   "--out", str(out)) == 0
     assert sorted(int(p.name) for p in (out / "checkpoints").iterdir()
                   if p.name.isdigit()) == [20, 40, 60, 80]
+
+
+def _start_training(out: Path) -> subprocess.Popen:
+    args = [*TOY, "--steps", "400000", "--replay-capacity", "4000", "--checkpoint-every",
+            "400000", "--out", str(out), "--no-progress"]
+    code = ("import sys; from tests.toy_task import ensure_registered; ensure_registered(); "
+            "from hprior_jax import cli; sys.exit(cli.main(sys.argv[1:]))")
+    import os
+
+    return subprocess.Popen([sys.executable, "-c", code, "train", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+WHEN = {  # what must exist (or not) when the signal is sent
+    # 1.5 s in: importing jax and the project, checking the configuration
+    "start-up": lambda out, started: time.time() > started + 1.5,
+    "compile": lambda out, started: (out / "config.json").exists(),  # the run directory, no chunk yet
+    "training": lambda out, started: (out / "eval.csv").exists() and len(_rows(out / "eval.csv")) >= 3,
+}
+
+
+@pytest.mark.parametrize("when", ["start-up", "compile", "training"])
+def test_ctrl_c_at_any_point_ends_130_with_a_resumable_directory_or_none(when, tmp_path,
+                                                                         capsys):
+    import signal
+
+    out = tmp_path / "run"
+    started = time.time()
+    proc = _start_training(out)
+    deadline = started + 240
+    while time.time() < deadline and proc.poll() is None and not WHEN[when](out, started):
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=240)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
+    if not (out / "config.json").exists():
+        assert not out.exists() or not any(out.iterdir())  # nothing left behind
+        return
+    step = (max((int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit()),
+                default=0) if (out / "checkpoints").exists() else 0)
+    assert _train("--resume", str(out), "--steps", str(step + 20)) == 0
+    assert load_run_config(out).steps == step + 20
+
+
+@pytest.mark.parametrize("site", ["log", "checkpoint"])
+def test_an_io_error_ends_with_one_line_and_the_run_still_resumes(site, base, tmp_path,
+                                                                   monkeypatch, capsys):
+    """A full disk faked where a run writes (its logs; a checkpoint, leaving orbax's
+    half-written folder): one line naming the path and the cause, rc 1, and the next
+    resume continues from the last checkpoint as if nothing happened."""
+    import errno
+
+    from hprior_jax.checkpoint import Checkpointer
+    from hprior_jax.run_log import RunLog
+
+    run = tmp_path / "run"
+    shutil.copytree(base, run)
+    full = lambda path: OSError(errno.ENOSPC, "No space left on device", str(path))
+    if site == "log":
+        def write(self, *args, **kwargs):
+            raise full(self.eval_csv_path)
+        monkeypatch.setattr(RunLog, "log_eval", write)
+    else:
+        def write(self, step, state):
+            (self.directory / f"{step}.orbax-checkpoint-tmp-1").mkdir()
+            raise full(self.directory / f"{step}.orbax-checkpoint-tmp-1")
+        monkeypatch.setattr(Checkpointer, "save", write)
+    capsys.readouterr()
+    assert _train("--resume", str(run), "--steps", "120") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left on device" in err[0] and str(run) in err[0], err
+    monkeypatch.undo()
+    clean = tmp_path / "clean"
+    shutil.copytree(base, clean)
+    assert _train("--resume", str(clean), "--steps", "120") == 0
+    assert _train("--resume", str(run), "--steps", "120") == 0
+    assert _rows(run / "eval.csv") == _rows(clean / "eval.csv")

@@ -70,3 +70,11 @@ def test_contrasts_are_holm_corrected_and_an_equivalence_needs_its_margin():
     alone = evaluate(by_cell, [Contrast.parse("a:b")], ["m"])[0]
     assert alone["verdict"].startswith("not detected")
     assert pooled(out) == []  # one task: nothing to pool
+
+
+def test_a_margin_from_a_reference_contrast_without_headroom_tests_no_equivalence():
+    seeds = range(6)
+    by_cell = {("t", r, 10): {s: {"m": v + 0.01 * s} for s in seeds}
+               for r, v in (("ref", 0.5), ("top", 0.4), ("a", 0.45), ("b", 0.45))}
+    (eq,) = evaluate(by_cell, [Contrast.parse("a:b@top:ref/2")], ["m"])
+    assert math.isnan(eq["margin"]) and eq["verdict"].startswith("not detected")

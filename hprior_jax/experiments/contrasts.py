@@ -3,7 +3,8 @@ family with Holm's correction, and, where a margin is given, for equivalence (TO
 
 A contrast is written `A:B` or `A:B@MARGIN`, MARGIN a number or `C:D/K`: the mean of contrast
 C − D at the same (task, metric, budget) divided by K (e.g. "half the oracle's headroom":
-`prior~shift:positional~shift@oracle~shift:rvar/2`). The family of a metric is every
+`prior~shift:positional~shift@oracle~shift:rvar/2`); where that mean is not positive there is
+no headroom to be within, and no equivalence is tested. The family of a metric is every
 contrast at every budget (and task) of that metric, so each adjusted p answers "is this one
 of the named differences real?" at α over all of them.
 
@@ -76,17 +77,16 @@ def evaluate(by_cell: dict, contrasts: list[Contrast], metrics: list[str]) -> li
                 margin = contrast.margin
                 if contrast.margin_of is not None:
                     x, y, k = contrast.margin_of
+                    margin = NAN  # no reference contrast, or one <= 0: nothing to be within
                     if (task, x, budget) in by_cell and (task, y, budget) in by_cell:
-                        margin = float(np.nanmean(_differences(
+                        headroom = float(np.nanmean(_differences(
                             value(by_cell[(task, x, budget)]),
                             value(by_cell[(task, y, budget)])))) / k
-                    else:
-                        margin = NAN
-                tost = (tost_p(_differences(a, b), abs(margin))
-                        if margin is not None else NAN)
+                        margin = headroom if headroom > 0 else NAN
+                tost = tost_p(_differences(a, b), margin) if margin is not None else NAN
                 family.append({"contrast": contrast.name, "task": task, "metric": metric,
                                "budget": budget, **c,
-                               "margin": NAN if margin is None else abs(margin),
+                               "margin": NAN if margin is None else margin,
                                "tost_p": tost})
         for key, adjusted in (("p", "p_holm"), ("tost_p", "tost_p_holm")):
             for entry, p in zip(family, holm([e[key] for e in family])):

@@ -113,15 +113,25 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
     the programs run on their own devices and the host loops are light). With `estimate`,
     every run's remaining wall time is first calibrated (`calibrate`) and the runs are
     packed longest first onto the least loaded group; otherwise they keep the plan's order.
-    `train_fn(cfg, run_dir, resume)` replaces training (tests pass a recorder)."""
+    `train_fn(cfg, run_dir, resume)` replaces training (tests pass a recorder). A second
+    grid on the same `root` is refused (dir_lock.DirInUse)."""
+    from hprior_jax import dir_lock
+
+    root = Path(root)
+    runs = plan(root, tasks, algos, seeds, budget, overrides)
+    root.mkdir(parents=True, exist_ok=True)
+    with dir_lock.DirLock(root):  # one grid per results directory
+        return _run_plan(root, runs, tasks, algos, seeds, budget, overrides, progress,
+                         train_fn, devices, estimate)
+
+
+def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress, train_fn,
+              devices, estimate) -> list[GridRun]:
     import jax
 
     from hprior_jax.loop import devices as seed_devices, host
     from hprior_jax.loop.engine import Engine
 
-    root = Path(root)
-    runs = plan(root, tasks, algos, seeds, budget, overrides)
-    root.mkdir(parents=True, exist_ok=True)
     spec = dict(tasks=list(tasks), algos=list(algos), seeds=list(seeds), budget=budget,
                 overrides=overrides or {}, written=time.strftime("%Y-%m-%d %H:%M:%S"))
     (root / "grid.json").write_text(json.dumps(spec, indent=2, default=_jsonable) + "\n")

@@ -392,8 +392,9 @@ class StopRequest:
     def _handle(self, signum, frame):
         self.requested = True
         signal.signal(signal.SIGINT, signal.SIG_DFL)
-        print("\nCtrl-C: finishing the chunk in flight and writing a checkpoint (press "
-              "Ctrl-C again to stop at once and lose that chunk)", file=sys.stderr, flush=True)
+        print("\nCtrl-C: stopping at the next safe point (once training has started: after "
+              "the chunk in flight, with a checkpoint); press Ctrl-C again to stop at once "
+              "and lose that chunk", file=sys.stderr, flush=True)
 
     def restore(self):
         if self._previous is not None:
@@ -414,9 +415,13 @@ class _ProgressBar:
         self.has_success = has_success
         self.steps, self.seconds, self.eval_seconds = 0, 0.0, 0.0
         self._eval = ""
-        self._bar = tqdm(total=total, initial=initial, unit="step", disable=not enabled,
-                         dynamic_ncols=True, mininterval=1.0,
+        # a log file gets a plain line per evaluation instead of the bar's \r frames
+        self.lines = enabled and not sys.stderr.isatty()
+        self._bar = tqdm(total=total, initial=initial, unit="step",
+                         disable=not enabled or self.lines, dynamic_ncols=True,
+                         mininterval=1.0,
                          bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {postfix}")
+        self._status = ""
 
     def advance(self, length: int, seconds: float) -> None:
         self.done += length
@@ -426,9 +431,13 @@ class _ProgressBar:
         eta = (self.total - self.done) / rate
         cost = (f" (evaluation {100 * self.eval_seconds / self.seconds:.0f}% of the time)"
                 if self.eval_seconds else "")
-        self._bar.set_postfix_str(f"{rate * self.num_seeds:.0f} env steps/s, ETA "
-                                  f"{_clock(eta)}{self._eval}{cost}", refresh=False)
+        self._status = (f"{rate * self.num_seeds:.0f} env steps/s, ETA {_clock(eta)}"
+                        f"{self._eval}{cost}")
+        self._bar.set_postfix_str(self._status, refresh=False)
         self._bar.update(length)
+        if self.lines and self._eval:  # once per evaluation
+            self.write(f"step {self.done}/{self.total}: {self._status}")
+            self._eval = ""
 
     def evaluated(self, mean_return: float, mean_success: float, seconds: float) -> None:
         self.eval_seconds += seconds
