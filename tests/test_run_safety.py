@@ -175,8 +175,10 @@ def _start_training(out: Path) -> subprocess.Popen:
 WHEN = {  # what must exist (or not) when the signal is sent
     # 1.5 s in: importing jax and the project, checking the configuration
     "start-up": lambda out, started: time.time() > started + 1.5,
-    "compile": lambda out, started: (out / "config.json").exists(),  # the run directory, no chunk yet
-    "training": lambda out, started: (out / "eval.csv").exists() and len(_rows(out / "eval.csv")) >= 3,
+    # the run directory made, no chunk trained yet
+    "compile": lambda out, started: (out / "config.json").exists(),
+    "training": lambda out, started: ((out / "eval.csv").exists()
+                                      and len(_rows(out / "eval.csv")) >= 3),
 }
 
 

@@ -288,12 +288,12 @@ def restore_latest(ckpt, like: RunState, step: int | None = None, on_unreadable=
             if on_unreadable is None or i + 1 == len(candidates):
                 raise CheckpointUnreadable(
                     f"the checkpoint at step {candidate} in {ckpt.directory} cannot be "
-                    f"restored: {_first_line(e)}") from e
+                    f"restored: {first_line(e)}") from e
             on_unreadable(candidate, e)
     raise CheckpointUnreadable(f"{ckpt.directory} holds no checkpoint")
 
 
-def _first_line(error: BaseException) -> str:
+def first_line(error: BaseException) -> str:
     text = str(error).strip().splitlines()
     return f"{type(error).__name__}: {text[0] if text else ''}"[:300]
 
@@ -308,7 +308,7 @@ def _set_aside(run_dir: Path, step: int, error: BaseException) -> Path:
         dest, n = Path(run_dir) / "broken_checkpoints" / f"{step}.{n}", n + 1
     dest.parent.mkdir(exist_ok=True)
     src.rename(dest)
-    print(f"the checkpoint at step {step} cannot be restored ({_first_line(error)}); moved "
+    print(f"the checkpoint at step {step} cannot be restored ({first_line(error)}); moved "
           f"to {dest}, resuming from the newest readable one", file=sys.stderr, flush=True)
     return dest
 

@@ -39,7 +39,7 @@ def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored
     that do not change the state's shapes (e.g. num_eval_episodes)."""
     from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.loop.engine import Engine
-    from hprior_jax.loop.host import CheckpointUnreadable, restore_latest
+    from hprior_jax.loop.host import CheckpointUnreadable, first_line, restore_latest
     from hprior_jax.loop.run_dir import load_run_config
 
     run_dir = Path(run_dir)
@@ -65,11 +65,11 @@ def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored
                 found, state = restore_latest(ckpt, initial[capacity], candidate)
                 break
             except Exception as e:  # a damaged checkpoint: metadata or data
-                reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                reason = first_line(e)
                 if i + 1 == len(candidates):
                     raise CheckpointUnreadable(f"the checkpoint at step {candidate} in "
                                                f"{run_dir} cannot be restored: {reason}") from e
-                print(f"the checkpoint at step {candidate} cannot be restored ({reason[:200]});"
+                print(f"the checkpoint at step {candidate} cannot be restored ({reason});"
                       f" using step {candidates[i + 1]}", file=sys.stderr, flush=True)
     finally:
         ckpt.close()
