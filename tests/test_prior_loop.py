@@ -47,25 +47,31 @@ def test_world_model_schedule(tmp_path):
 def test_the_ablation_flags_reach_the_credit_and_the_prior_term(tmp_path, monkeypatch):
     """--prior.exclude-own-step: every stored pair's α is 0 on its last step and still sums
     to 1; --prior.clip-targets: the round's prior term is built to clip (prior_term's clip
-    itself is tested in test_prior_loss); --prior.wm-normalize-obs: the world model's
+    itself is tested in test_prior_loss); --prior.target shifted: built with the tanh head's
+    shift 1 (its algebra: test_prior_loss); --prior.wm-normalize-obs: the world model's
     training, its diagnostics and the credit all read standardised observations (what a
     scaler does: test_world_model); --prior.unlabelled-segments: a second prior term."""
     import hprior_jax.methods.prior as prior_method
 
-    clips, scalers = [], []
+    clips, shifts, scalers = [], [], []
     real_term = prior_method.prior_term
-    monkeypatch.setattr(prior_method, "prior_term",
-                        lambda *a, clip=False: clips.append(clip) or real_term(*a, clip=clip))
+
+    def term(*a, clip=False, shift=0.0):
+        clips.append(clip)
+        shifts.append(shift)
+        return real_term(*a, clip=clip, shift=shift)
+
+    monkeypatch.setattr(prior_method, "prior_term", term)
     real_scaled = prior_method.wm.scaled
     monkeypatch.setattr(prior_method.wm, "scaled",
                         lambda scaler, obs: scalers.append(scaler) or real_scaled(scaler, obs))
     cfg = _cfg(tmp_path, "ablated")
     cfg = dataclasses.replace(cfg, prior=dataclasses.replace(
         cfg.prior, exclude_own_step=True, clip_targets=True, wm_normalize_obs=True,
-        unlabelled_segments=8))
+        unlabelled_segments=8, target="shifted"))
     rs = _run(cfg)
     count = int(rs.method.prefs.count[0])
-    assert count > 0 and clips and all(clips)
+    assert count > 0 and clips and all(clips) and shifts == [1.0] * len(shifts)
     # traced: pre-training, a later update, the diagnostics of each, the credit of a round
     # and of its unlabelled segments
     assert len(scalers) >= 6 and all(isinstance(s, prior_method.wm.ObsScaler) for s in scalers)
