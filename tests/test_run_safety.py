@@ -2,7 +2,6 @@
 once it has a checkpoint (a stop before that rolls it back, one after it commits), one
 writer per directory (two real processes), and a damaged newest checkpoint is skipped for
 the newest readable one by resume and eval."""
-import csv
 import shutil
 import subprocess
 import sys
@@ -17,32 +16,15 @@ from hprior_jax import cli, dir_lock
 from hprior_jax.loop import host
 from hprior_jax.loop.restore import restore_run
 from hprior_jax.loop.run_dir import EXTENDING, load_run_config
-from tests.test_life_cycle import TOY
+from tests.test_life_cycle import TOY, _rows, _train, finished as base  # noqa: F401
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _train(*args) -> int:
-    return cli.main(["train", *TOY, "--no-progress", *args])
-
-
-def _rows(path):
-    return list(csv.reader(open(path, newline="")))
 
 
 def _same_state(a: Path, b: Path):
     for x, y in zip(jax.tree.leaves(restore_run(a).state), jax.tree.leaves(restore_run(b).state),
                     strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-
-
-@pytest.fixture(scope="module")
-def base(tmp_path_factory):
-    """A finished 80-step run (replay capacity = its budget, so an extension grows it)."""
-    out = tmp_path_factory.mktemp("safety") / "base"
-    assert _train("--steps", "80", "--checkpoint-every", "40", "--seeds", "1", "2",
-                  "--out", str(out)) == 0
-    return out
 
 
 def test_an_extension_stopped_before_its_checkpoint_rolls_back_and_one_after_commits(

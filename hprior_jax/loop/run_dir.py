@@ -107,7 +107,6 @@ def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int |
     until the resumed run writes its first checkpoint (`commit_extension`), so a run stopped
     before that still resumes as it was. Returns the config and the replay capacity of the
     run's checkpoints when it changes."""
-    from hprior_jax.checkpoint import Checkpointer
     from hprior_jax.config import differing_fields
 
     old = load_run_config(run_dir)
@@ -123,11 +122,7 @@ def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int |
             "new run (another --out) for the rest")
     if not changed:
         return old, None
-    ckpt = Checkpointer(Path(run_dir) / "checkpoints")
-    try:
-        checkpoint_step = ckpt.latest_step()
-    finally:
-        ckpt.close()
+    checkpoint_step = latest_checkpoint_step(run_dir)
     new = requested
     if new.steps < old.steps and not old.replay_capacity:
         new = dataclasses.replace(new, replay_capacity=old.capacity)  # keep the buffer's size
