@@ -30,13 +30,13 @@ def make_engine(task: str, algo: str, capacity: int):
     import dataclasses
 
     from hprior_jax import presets
-    from hprior_jax.loop.engine import Engine
+    from hprior_jax.runs.build import build_engine
 
     cfg = presets.train_preset(task, algo, "smoke", steps=capacity, num_seed_steps=SEED_STEPS)
     if hasattr(cfg, "pebble"):  # the PEBBLE family: a pre-training phase of UNSUP_STEPS
         cfg = dataclasses.replace(cfg, pebble=dataclasses.replace(
             cfg.pebble, num_unsup_steps=UNSUP_STEPS))
-    return Engine(cfg)
+    return build_engine(cfg)
 
 
 def filled(rs, n: int, key):

@@ -36,7 +36,7 @@ def child(spans_path: str, argv: list[str]) -> None:
     """Runs `hprior train argv` with every compile event written to `spans_path` (JSONL)."""
     import threading
 
-    from hprior_jax.loop.host import process_age
+    from hprior_jax.loop.progress import process_age
 
     t_process = time.time() - process_age()  # the process's start on jax's clock
     out = open(spans_path, "a", buffering=1)

@@ -55,11 +55,11 @@ def _train(argv: list[str]) -> int:
     known, rest = pre.parse_known_args(argv)
     help_asked = "-h" in rest or "--help" in rest
 
-    from hprior_jax.loop import host
+    from hprior_jax.loop.stopping import StopRequest  # light: before JAX's own imports
 
     # Ctrl-C from here on is a request, never an exception inside JAX's callbacks: before
     # anything is written it ends the command; after, the run checkpoints and stops
-    stop, locks = host.StopRequest(), []
+    stop, locks = StopRequest(), []
     try:
         return _train_run(argv, known, rest, help_asked, stop, locks)
     finally:
@@ -72,8 +72,9 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
     """`hprior train` after the SIGINT handler is in place; the run directory's lock, once
     held, goes into `locks` (released by the caller whatever happens)."""
     from hprior_jax import dir_lock, presets, provenance
-    from hprior_jax.loop import devices, host, run_dir as run_dirs
-    from hprior_jax.loop.engine import Engine
+    from hprior_jax.loop import devices, host, run_files
+    from hprior_jax.runs import run_dir as run_dirs
+    from hprior_jax.runs.build import build_engine, train
     from hprior_jax.setup_jax import enable_compilation_cache
 
     # before anything touches a device: with several processes the mesh spans them all
@@ -89,7 +90,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         if devices.is_primary():
             run_dirs.load_run_config(run_dir)  # a run directory at all, before locking it
             locks.append(dir_lock.hold(run_dir))  # before anything in it changes
-        note = run_dirs.settle_extension(run_dir, run_dirs.latest_checkpoint_step(run_dir))
+        note = run_files.settle_extension(run_dir, run_files.latest_checkpoint_step(run_dir))
         if note:
             print(note, file=sys.stderr, flush=True)
         saved = run_dirs.load_run_config(run_dir)
@@ -100,7 +101,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         requested = _parse_config(default, _tyro_args(argv))
         cfg, saved_capacity = run_dirs.resume_config(run_dir, requested)
         enable_compilation_cache()
-        engine = Engine(cfg, known.devices)
+        engine = build_engine(cfg, known.devices)
     else:
         task, algo = known.task or "cheetah_run", known.algo or registry.DEFAULT
         default = presets.train_preset(task, algo, known.preset or DEFAULT_PRESET)
@@ -117,7 +118,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         run_dirs.check_out_dir(Path(cfg.out))  # in every process: all refuse a bad --out
         enable_compilation_cache()
         # every configuration check runs before anything is written
-        engine = Engine(cfg, known.devices)
+        engine = build_engine(cfg, known.devices)
         devices.barrier("run directory checked")
         if devices.is_primary():
             run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
@@ -130,10 +131,10 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         return 130
     print(f"run directory: {run_dir}", flush=True)
     if known.resume:
-        step = run_dirs.latest_checkpoint_step(run_dir)
+        step = run_files.latest_checkpoint_step(run_dir)
         print(f"resuming from step {step or 0} of {cfg.steps}", flush=True)
     try:
-        host.run(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
+        train(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
                  saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known),
                  interrupt=stop,
                  compile_ahead="off" if known.no_compile_ahead
@@ -327,7 +328,7 @@ def _label(argv: list[str]) -> int:
     if args.from_run and args.from_lab:
         parser.error("give --from-run or --from-lab, not both")
     if args.from_run or args.from_lab:
-        from hprior_jax.loop.run_dir import check_out_dir
+        from hprior_jax.runs.run_dir import check_out_dir
 
         check_out_dir(Path(args.dir))
         if args.from_run:

@@ -22,8 +22,8 @@ FORMAT = 1
 
 def export_seed(run_dir: Path, out: Path, seed: int | None = None,
                 step: int | None = None) -> Path:
-    from hprior_jax.loop.restore import restore_run
-    from hprior_jax.loop.run_dir import check_out_dir, run_info_of
+    from hprior_jax.runs.restore import restore_run
+    from hprior_jax.runs.run_dir import check_out_dir, run_info_of
 
     out = check_out_dir(Path(out))
     restored = restore_run(run_dir, step)

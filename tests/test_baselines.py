@@ -13,9 +13,8 @@ import pytest
 
 from hprior_jax import presets
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.loop import host
-from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.run_dir import load_run_config, prepare_run_dir
 from hprior_jax.networks.reward_ensemble import NEXT_EMBEDDING
 from tests.assertions import assert_buffer_holds_learned_reward
 
@@ -45,13 +44,13 @@ def runs_of(tmp_path_factory):
             tmp = tmp_path_factory.mktemp(algo)
             cfg = _cfg(tmp, algo, "split", (8, 7))
             run_dir = prepare_run_dir(cfg)
-            mid = host.run(cfg, run_dir, progress=False, max_chunks=3)
+            mid = train(cfg, run_dir, progress=False, max_chunks=3)
             mid = jax.tree.map(np.asarray, mid)  # the resumed run donates its buffers
-            resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
+            resumed = train(load_run_config(run_dir), run_dir, resume=True, progress=False)
 
             def full(seeds):
                 c = _cfg(tmp, algo, "full_" + "_".join(map(str, seeds)), seeds)
-                return host.run(c, prepare_run_dir(c), progress=False)
+                return train(c, prepare_run_dir(c), progress=False)
 
             cache[algo] = (cfg, mid, resumed, full)
         return cache[algo]
@@ -89,7 +88,7 @@ def test_each_method_leaves_its_mark(runs):
     algo, cfg, _, rs, _ = runs
     rows = [json.loads(l) for l in open(f"{cfg.out}/metrics.jsonl")]
     logged = {k for r in rows for k in r}
-    method = Engine(cfg).method
+    method = build_engine(cfg).method
     if algo == "surf":
         h, w = cfg.pebble.segment_len, cfg.surf.window
         assert method.stored_segment_len == h + 2 * w and rs.method.prefs.obs1.shape[2] == h + 2 * w
@@ -103,7 +102,7 @@ def test_each_method_leaves_its_mark(runs):
         assert "mrn/outer_loss" in logged and method.meta_steps()
     elif algo == "bisim":
         head = rs.method.reward["params"][NEXT_EMBEDDING]["kernel"]
-        fresh = Engine(cfg).init_seeds([8, 7]).method.reward["params"][NEXT_EMBEDDING]["kernel"]
+        fresh = build_engine(cfg).init_seeds([8, 7]).method.reward["params"][NEXT_EMBEDDING]["kernel"]
         assert np.abs(np.asarray(head) - np.asarray(fresh)).max() > 1e-4  # the head trained
         assert "bisim/loss" in logged
 
@@ -120,7 +119,7 @@ def test_rune_bonus_reaches_the_critic_and_nothing_else(runs_of):
     (_, pebble, _, _), (cfg, rune, _, _) = runs_of("pebble"), runs_of("rune")
     np.testing.assert_allclose(_flat(rune.method.reward), _flat(pebble.method.reward),
                                rtol=1e-5, atol=1e-6)
-    assert_buffer_holds_learned_reward(rune, Engine(cfg).method.reward_cfg)
+    assert_buffer_holds_learned_reward(rune, build_engine(cfg).method.reward_cfg)
     assert np.abs(_flat(rune.sac.critic) - _flat(pebble.sac.critic)).max() > 1e-4
 
 
@@ -148,7 +147,7 @@ def test_mrn_meta_steps_replace_sac_steps(runs_of):
     """As many critic updates as PEBBLE (each meta step made one, in place of the SAC step's),
     the buffer relabelled after the last meta step, every meta step logged with its cost."""
     (_, _, pebble, _), (cfg, _, mrn, _) = runs_of("pebble"), runs_of("mrn")
-    method = Engine(cfg).method
+    method = build_engine(cfg).method
     assert method.meta_steps() == [60, 80]  # rounds at 40 and 80: 20 labels < 40 at step 80
     assert _critic_updates(mrn) == _critic_updates(pebble) == (
         cfg.steps - 40 + cfg.pebble.reset_update)
@@ -162,9 +161,9 @@ def test_mrn_meta_steps_replace_sac_steps(runs_of):
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", BASELINES)
 def test_a_seed_alone_equals_its_slot(tmp_path, algo):
-    both = host.run(_cfg(tmp_path, algo, "both", (7, 8)),
+    both = train(_cfg(tmp_path, algo, "both", (7, 8)),
                     prepare_run_dir(_cfg(tmp_path, algo, "both", (7, 8))), progress=False)
-    alone = host.run(_cfg(tmp_path, algo, "alone", (8,)),
+    alone = train(_cfg(tmp_path, algo, "alone", (8,)),
                      prepare_run_dir(_cfg(tmp_path, algo, "alone", (8,))), progress=False)
     for a, b in zip(_lane(alone, 0), _lane(both, 1)):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
@@ -183,5 +182,5 @@ def test_surf_named_defaults_from_the_command_line():
     assert (cfg.surf.threshold_u, cfg.surf.mu, cfg.surf.inv_label_ratio) == (0.99, 2, 100)
     assert type(cfg).from_dict(json.loads(cfg.to_json())) == cfg  # config.json round trip
     with pytest.raises(ValueError, match="crop"):
-        Engine(dataclasses.replace(_cfg(Path("/tmp"), "surf", "x", (7,)),
+        build_engine(dataclasses.replace(_cfg(Path("/tmp"), "surf", "x", (7,)),
                                    surf=SurfConfig(window=1, crop_range=3)))

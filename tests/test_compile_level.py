@@ -9,7 +9,7 @@ import tasks
 from hprior_jax import presets
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import RunConfig
-from hprior_jax.loop.engine import Engine
+from hprior_jax.runs.build import build_engine
 from hprior_jax.setup_jax import LEVEL_OPTION, compiler_options
 
 
@@ -67,7 +67,7 @@ def test_every_program_of_the_run_compiles_with_the_options(tmp_path):
     cfg = presets.train_preset("toy_point", "sac", "smoke", out=str(tmp_path / "r"),
                                compile_level="0", num_eval_episodes=2,
                                sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8))
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     assert engine.compiler_options == {LEVEL_OPTION: 0}
     rs = engine.init_seeds(cfg.seeds)
     # an option XLA does not know fails the compile: the options reach it

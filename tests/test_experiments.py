@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hprior_jax.loop import host
-from hprior_jax.loop.run_dir import prepare_run_dir
+from hprior_jax.runs.build import train
+from hprior_jax.runs.run_dir import prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.experiments import grid, report
 from hprior_jax.experiments.scores import normalized_score, reference_curve, task_scores
@@ -168,14 +168,14 @@ def test_grid_skips_complete_runs_and_resumes_interrupted_ones(tmp_path):
     seeds = (1, 2)
     # an interrupted run: 1 of 4 chunks, checkpointed at the stop
     cfg = grid.run_config(tmp_path, "toy_point", "sac", seeds, "smoke", TINY)
-    host.run(cfg, prepare_run_dir(cfg), progress=False, max_chunks=1)
+    train(cfg, prepare_run_dir(cfg), progress=False, max_chunks=1)
     assert grid.run_status(cfg) == "interrupted"
 
     calls = []
 
     def recording_train(cfg, run_dir, resume):
         calls.append((cfg.task, cfg.algo, resume))
-        host.run(cfg, run_dir, resume=resume, progress=False)
+        train(cfg, run_dir, resume=resume, progress=False)
 
     runs = grid.run_grid(tmp_path, ["toy_point", "toy_scaled"], ["sac"], seeds, "smoke", TINY,
                          train_fn=recording_train)

@@ -13,8 +13,8 @@ from hprior_jax import presets
 from hprior_jax.labelling.server import ServerOptions
 from hprior_jax.labelling.teacher import AskOptions
 from hprior_jax.loop import host
-from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import prepare_run_dir
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.run_dir import prepare_run_dir
 from tests.ports import free_port
 from tests.test_pebble_loop import SMALL
 
@@ -60,7 +60,7 @@ def _train(cfg, port, answerer=None, resume=False, timeout_s=60.0, interrupt=Non
     if answerer is not None:
         answerer.start()
     try:
-        return host.run(cfg, prepare_run_dir(cfg) if not resume else cfg.out, resume=resume,
+        return train(cfg, prepare_run_dir(cfg) if not resume else cfg.out, resume=resume,
                         progress=False, interrupt=interrupt, labelling=AskOptions(
                             ServerOptions(port=port), timeout_s=timeout_s, poll_s=0.05))
     finally:
@@ -94,12 +94,12 @@ class _Stop:
 
 def test_a_person_answering_as_the_oracle_trains_the_oracles_run(tmp_path):
     oracle = _cfg(tmp_path, "oracle", "oracle")
-    host.run(oracle, prepare_run_dir(oracle), progress=False)
+    train(oracle, prepare_run_dir(oracle), progress=False)
 
     human = _cfg(tmp_path, "human", "human")
     run_dir = tmp_path / "human"
     port = free_port()
-    assert Engine(human).method.asks_person
+    assert build_engine(human).method.asks_person
     # nobody answers: after the timeout the run stops at the first round, checkpointed there
     with pytest.raises(host.Interrupted, match="no answer for 1 s") as stopped:
         _train(human, port, timeout_s=1.0)
@@ -131,7 +131,7 @@ def test_a_person_answering_as_the_oracle_trains_the_oracles_run(tmp_path):
 @pytest.mark.parametrize("algo", ["surf", "mrn", "rune", "rvar", "bisim", "prior"])
 def test_every_pebble_family_method_asks_a_person_as_its_teacher(tmp_path, algo):
     oracle = _cfg(tmp_path, "oracle", "oracle", algo)
-    host.run(oracle, prepare_run_dir(oracle), progress=False)
+    train(oracle, prepare_run_dir(oracle), progress=False)
     port = free_port()
     _train(_cfg(tmp_path, "human", "human", algo), port, Answerer(tmp_path / "human", port))
     _assert_same_run(tmp_path / "oracle", tmp_path / "human")
@@ -142,7 +142,7 @@ def test_a_persons_answers_become_b_pref_labels(tmp_path):
     round clipped to the budget) are not asked and not valid."""
     from hprior_jax.labelling.teacher import HumanTeacher
 
-    task = Engine(_cfg(tmp_path, "x", "human")).task
+    task = build_engine(_cfg(tmp_path, "x", "human")).task
     shown = {f"physics{s}": {"qpos": np.zeros((1, 3, 4, 1), np.float32)} for s in (1, 2)}
     shown |= {"true_reward1": np.ones((1, 3, 4), np.float32),
               "true_reward2": np.zeros((1, 3, 4), np.float32)}

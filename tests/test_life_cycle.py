@@ -19,8 +19,10 @@ import pytest
 import hprior_jax
 from hprior_jax import cli
 from hprior_jax.loop import host
-from hprior_jax.loop.restore import restore_run
-from hprior_jax.loop.run_dir import load_run_config
+from hprior_jax.loop.progress import ProgressBar
+from hprior_jax.runs.build import train
+from hprior_jax.runs.restore import restore_run
+from hprior_jax.runs.run_dir import load_run_config
 
 ROOT = Path(__file__).resolve().parent.parent
 TOY = ["--task", "toy_point", "--preset", "smoke", "--num-seed-steps", "20", "--chunk-steps",
@@ -129,7 +131,7 @@ def test_a_torn_last_log_line_is_dropped_with_a_warning_and_resume_leaves_no_dup
     with open(out / "eval.csv", "a") as f:
         f.write("80,12")
     with pytest.warns(UserWarning, match=re.escape(str(out / "metrics.jsonl"))):
-        host.run(load_run_config(out), out, resume=True, progress=False)
+        train(load_run_config(out), out, resume=True, progress=False)
     assert _records(out) == complete  # the records after step 40 once, none torn
     assert [r[0] for r in _rows(out / "eval.csv")] == ["step", "40", "80"]
 
@@ -142,7 +144,7 @@ def test_a_resume_hits_the_compilation_cache(tmp_path):
         assert _train("--steps", "80", "--checkpoint-every", "40", "--out", str(out)) == 0
         (out / "checkpoints" / "80").rename(tmp_path / "gone")
         events.clear()
-        host.run(load_run_config(out), out, resume=True, progress=False)
+        train(load_run_config(out), out, resume=True, progress=False)
     assert events.count("/jax/compilation_cache/cache_hits") >= 2  # the chunk and eval
     assert "/jax/compilation_cache/cache_misses" not in events
 
@@ -212,7 +214,7 @@ def test_eval_of_a_checkpoint_repeats_its_evaluation(finished, capsys):
 
 
 def test_export_loads_a_pure_policy_without_the_run(finished, tmp_path):
-    from hprior_jax.loop.restore import restore_run
+    from hprior_jax.runs.restore import restore_run
 
     assert cli.main(["export", "--run", str(finished), "--seed", "2",
                      "--out", str(tmp_path / "exp")]) == 0
@@ -248,8 +250,7 @@ def test_render_frames_and_video(tmp_path):
 
 def test_progress_bar_has_one_rate_and_an_eta(capsys, monkeypatch):
     def one_evaluation():
-        bar = host._ProgressBar(total=1000, initial=0, enabled=True, num_seeds=2,
-                                has_success=True)
+        bar = ProgressBar(total=1000, initial=0, enabled=True, num_seeds=2, has_success=True)
         bar.evaluated(-3.0, 0.5, seconds=0.1)
         bar.advance(100, 0.5)  # 100 steps per seed in 0.5 s of training, 0.1 s evaluating
         bar.close()
@@ -269,7 +270,7 @@ def test_progress_bar_has_one_rate_and_an_eta(capsys, monkeypatch):
 
 def test_eval_budget_cpu_halves_episodes_and_cadence(tmp_path, monkeypatch, capsys):
     runs = []
-    monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))
+    monkeypatch.setattr(host, "run", lambda engine, run_dir, **kw: runs.append(engine.cfg))
     base = ["train", "--task", "toy_point", "--preset", "reduced", "--algo", "sac"]
     assert cli.main([*base, "--out", str(tmp_path / "a")]) == 0
     assert cli.main([*base, "--eval-budget", "cpu", "--out", str(tmp_path / "b")]) == 0
@@ -285,7 +286,7 @@ def test_eval_budget_cpu_halves_episodes_and_cadence(tmp_path, monkeypatch, caps
 
 def test_cli_accepts_flag_equals_value_and_lists_its_options(tmp_path, capsys, monkeypatch):
     runs = []
-    monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))
+    monkeypatch.setattr(host, "run", lambda engine, run_dir, **kw: runs.append(engine.cfg))
     assert cli.main(["train", "--task=toy_point", "--preset=smoke", "--algo=pebble",
                      "--feedback=20", "--steps=200", "--num-eval-episodes=2",
                      f"--out={tmp_path / 'eq'}", "--teacher=mistake"]) == 0
@@ -336,7 +337,7 @@ def test_grid_and_train_share_the_preset_flag_and_default(tmp_path, monkeypatch)
 
     assert seen == [DEFAULT_PRESET, "smoke", "reduced"]
     runs = []
-    monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))
+    monkeypatch.setattr(host, "run", lambda engine, run_dir, **kw: runs.append(engine.cfg))
     assert cli.main(["train", "--task", "toy_point", "--out", str(tmp_path / "t")]) == 0
     assert runs[0].preset == DEFAULT_PRESET
 
@@ -397,7 +398,7 @@ def test_bad_input_ends_with_one_clear_line(argv, says, finished, tmp_path, caps
 
 def test_an_out_without_write_permission_is_refused_by_name(tmp_path, monkeypatch):
     """(Root ignores permissions, so the check's answer is faked, not the folder's mode.)"""
-    from hprior_jax.loop import run_dir
+    from hprior_jax.runs import run_dir
 
     monkeypatch.setattr(run_dir.os, "access", lambda path, mode: path != tmp_path)
     with pytest.raises(run_dir.RunDirError, match=f"no permission to write in {tmp_path}"):

@@ -14,9 +14,8 @@ import pytest
 from hprior_jax import presets
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import RunConfig
-from hprior_jax.loop import host
-from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.run_dir import load_run_config, prepare_run_dir
 from hprior_jax.methods import registry
 
 PACKAGE = Path(__file__).resolve().parents[1] / "hprior_jax"
@@ -52,7 +51,7 @@ def test_every_method_builds_and_records_only_its_sections(tmp_path, algo):
     sections = {k for k, v in saved.items() if isinstance(v, dict)} - {"sac"}
     assert sections == set(spec.sections)  # a SAC run records no max_feedback
     assert RunConfig.from_dict(saved) == cfg
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     assert engine.phases[0].start == 0 and engine.phase_at(cfg.steps - 1)
     assert all(0 < s < cfg.steps for s in engine.event_steps())
 
@@ -81,7 +80,7 @@ LAMS, SEEDS = (0.0, 5.0, 50.0), (7, 8)
 def lambda_sweep(tmp_path_factory):
     """Three λ x two seeds = six cells on the leading axis of one run."""
     cfg = _cfg(tmp_path_factory.mktemp("sweep"), "prior", steps=100, seeds=SEEDS)
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     rs = engine.init_seeds([s for _ in LAMS for s in SEEDS])
     lam = jnp.repeat(jnp.asarray(LAMS, jnp.float32), len(SEEDS))
     rs = rs.replace(method=rs.method.replace(ext=rs.method.ext.replace(lam=lam)))
@@ -118,7 +117,7 @@ def test_a_lambda_sweep_cell_equals_a_run_of_that_lambda_alone(lambda_sweep):
     """The cell (λ = 50, seed 7) is a run of λ = 50 alone, up to the rounding of a vmapped
     program (which grows over 100 steps of training): far closer than the λ = 5 cell."""
     cfg, _, rs = lambda_sweep
-    alone = Engine(dataclasses.replace(cfg, seeds=(7,), prior=dataclasses.replace(cfg.prior,
+    alone = build_engine(dataclasses.replace(cfg, seeds=(7,), prior=dataclasses.replace(cfg.prior,
                                                                                    lam=50.0)))
     one = _drive(alone, alone.init_seeds([7]), cfg.steps)
     cell = lambda i: _flat(rs.method.reward, i)
@@ -138,23 +137,23 @@ def test_a_run_directory_of_format_1_still_resumes(tmp_path, fixture, algo):
     old = json.loads((run_dir / "config.json").read_text())
     cfg = load_run_config(run_dir)
     assert cfg.algo == algo and cfg.prior.lam == old["prior"]["lam"]
-    restored = host.run(cfg, run_dir, resume=True, progress=False, max_chunks=0)
-    fresh = Engine(cfg).init_seeds(list(cfg.seeds))
+    restored = train(cfg, run_dir, resume=True, progress=False, max_chunks=0)
+    fresh = build_engine(cfg).init_seeds(list(cfg.seeds))
     assert int(np.asarray(restored.method.prefs.count)[0]) > 0  # labels came back
     assert int(np.asarray(restored.method.ext.wm.dyn_steps)[0]) > 0  # so did the world model
     assert float(np.asarray(restored.method.ext.lam)[0]) == old["prior"]["lam"]
     assert not np.allclose(np.asarray(jax.tree.leaves(restored.method.reward)[0]),
                            np.asarray(jax.tree.leaves(fresh.method.reward)[0]))
-    done = host.run(cfg, run_dir, resume=True, progress=False)
+    done = train(cfg, run_dir, resume=True, progress=False)
     assert int(np.asarray(done.replay.size)[0]) == cfg.steps
     rows = (run_dir / "eval.csv").read_text().splitlines()
     assert rows[-1].startswith(f"{cfg.steps},")
 
 
 def test_prior_nrp_and_rvar_are_methods_of_their_own(tmp_path):
-    nrp = Engine(_cfg(tmp_path, "prior_nrp", steps=100)).method
+    nrp = build_engine(_cfg(tmp_path, "prior_nrp", steps=100)).method
     assert nrp.ext.variant == "nrp" and nrp.ext.event_steps() == [40, 60]
-    rvar = Engine(_cfg(tmp_path, "rvar", steps=100)).method
+    rvar = build_engine(_cfg(tmp_path, "rvar", steps=100)).method
     assert rvar.event_steps() == [40, 80]  # feedback rounds only: no world model
     assert registry.get("prior_nrp").has_world_model and not registry.get("rvar").has_world_model
 

@@ -11,7 +11,7 @@ import optax
 from hprior_jax import presets
 from hprior_jax.agents.sac import SAC, Batch, SACConfig
 from hprior_jax.buffers import preferences
-from hprior_jax.loop.engine import Engine
+from hprior_jax.runs.build import build_engine
 from hprior_jax.methods.mrn import recent_pairs
 from hprior_jax.methods.pebble import PebbleState
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
@@ -111,8 +111,8 @@ def test_recent_pairs_is_a_ring_slice_ending_at_the_write_pointer():
 
 def test_meta_steps_follow_the_original_schedule(tmp_path):
     cfg = presets.train_preset("toy_point", "mrn", "smoke", out=str(tmp_path / "m"), **SMALL)
-    mrn = Engine(cfg).method
+    mrn = build_engine(cfg).method
     # rounds at 40, 80, 120, 160 (10 labels each, budget 40); a meta step every 20 steps
     # after the first round while the labels given so far are below 40: none from 160 on
     assert mrn.meta_steps() == [60, 80, 100, 120, 140]
-    assert Engine(cfg).event_steps() == [40, 60, 80, 100, 120, 140, 160]
+    assert build_engine(cfg).event_steps() == [40, 60, 80, 100, 120, 140, 160]

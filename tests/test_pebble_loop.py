@@ -7,8 +7,8 @@ import pytest
 
 from hprior_jax import cli, presets
 from hprior_jax.loop import host
-from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import prepare_run_dir
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.run_dir import prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.methods.pebble import PebbleConfig
 from tests.assertions import assert_buffer_holds_learned_reward
@@ -27,15 +27,15 @@ def _records(run_dir):
 
 def test_round_schedule_follows_bpref():
     cfg = presets.train_preset("toy_point", "pebble", "smoke", **SMALL)
-    trainer = Engine(cfg).method
+    trainer = build_engine(cfg).method
     # 20 seed + 20 pre-training steps, then a round every 40 steps; 40 queries in rounds of 10
     assert trainer.rounds() == [(40, 10), (80, 10), (120, 10), (160, 10)]
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     assert engine.phase_at(0) == "random" and engine.phase_at(20) == "unsup"
     assert engine.phase_at(40) == "sac"
     import dataclasses
     clipped = dataclasses.replace(cfg, pebble=dataclasses.replace(cfg.pebble, max_feedback=25))
-    assert Engine(clipped).method.rounds() == [(40, 10), (80, 10), (120, 5)]
+    assert build_engine(clipped).method.rounds() == [(40, 10), (80, 10), (120, 5)]
 
 
 class _ToyRuns(dict):
@@ -48,7 +48,7 @@ class _ToyRuns(dict):
 
     def __missing__(self, task):
         cfg = _cfg(self.tmp, task, task=task, seeds=(7,))
-        self[task] = (cfg, host.run(cfg, prepare_run_dir(cfg), progress=False), self.tmp / task)
+        self[task] = (cfg, train(cfg, prepare_run_dir(cfg), progress=False), self.tmp / task)
         return self[task]
 
 
@@ -75,7 +75,7 @@ def test_true_reward_never_reaches_agent_or_reward_model(toy_runs):
 def test_buffer_holds_learned_reward_for_every_transition(toy_runs):
     cfg, rs, run_dir = toy_runs["toy_point"]
     assert int(np.asarray(rs.replay.size)[0]) == cfg.steps
-    assert_buffer_holds_learned_reward(rs, Engine(cfg).method.reward_cfg)
+    assert_buffer_holds_learned_reward(rs, build_engine(cfg).method.reward_cfg)
 
 
 def test_feedback_and_reward_logs(toy_runs):
@@ -95,7 +95,7 @@ def test_cli_pebble_with_short_flags(tmp_path, monkeypatch):
     """The short spellings and --teacher reach the run's config (the training itself is
     the other tests' job: host.run is replaced by a recorder)."""
     runs = []
-    monkeypatch.setattr(host, "run", lambda cfg, run_dir, **kw: runs.append(cfg))
+    monkeypatch.setattr(host, "run", lambda engine, run_dir, **kw: runs.append(engine.cfg))
     out = tmp_path / "cli"
     rc = cli.main(["train", "--algo", "pebble", "--task", "toy_point", "--preset", "smoke",
                    "--feedback", "20", "--queries-per-round", "10", "--teacher", "mistake",
@@ -105,16 +105,16 @@ def test_cli_pebble_with_short_flags(tmp_path, monkeypatch):
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["pebble"]["max_feedback"] == 20 and cfg["pebble"]["teacher"]["eps_mistake"] == 0.1
     assert cfg["pebble"]["queries_per_round"] == 10 and cfg["sac"]["hidden_dim"] == 16
-    assert Engine(runs[0]).method.rounds() == [(40, 10), (80, 10)]
+    assert build_engine(runs[0]).method.rounds() == [(40, 10), (80, 10)]
 
 
 def test_pebble_config_errors(tmp_path):
     with pytest.raises(ValueError, match="--queries-per-round"):
         _cfg(tmp_path, "x", pebble=PebbleConfig(max_feedback=5, queries_per_round=10))
     with pytest.raises(ValueError, match="shorter than the episode"):
-        Engine(_cfg(tmp_path, "y", pebble=PebbleConfig(segment_len=20)))
+        build_engine(_cfg(tmp_path, "y", pebble=PebbleConfig(segment_len=20)))
     with pytest.raises(ValueError, match="multiple of 20"):
-        Engine(_cfg(tmp_path, "z", steps=210))
+        build_engine(_cfg(tmp_path, "z", steps=210))
 
 
 def test_exported_reward_is_the_runs_learned_reward(toy_runs, tmp_path):
@@ -138,7 +138,7 @@ def test_a_chunk_of_the_first_phase_runs_the_same_in_its_own_program(tmp_path):
     the run starts while the full program compiles) gives the state and metrics of the
     full program's random branch, bit for bit."""
     cfg = _cfg(tmp_path, "x", seeds=(7, 8))
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     assert engine._chunk_name(0, 20) == "chunk/20"  # one program unless asked
     engine.first_phase_apart = True
     assert engine._chunk_name(0, 20) == "chunk/20/random"
@@ -160,7 +160,7 @@ def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
     and the other chunk lengths on a background thread; a run whose programs all came from
     there is the run that compiles each when it first needs it."""
     ahead = _cfg(tmp_path, "ahead", seeds=(7,), steps=100, eval_every=60)
-    engine = Engine(ahead)
+    engine = build_engine(ahead)
     rs = engine.init_seeds(ahead.seeds)
     engine.compile_run_ahead(rs, 0)
     # chunks of 20 (the main thread compiles their program first): random, pre-training,
@@ -169,12 +169,12 @@ def test_later_programs_compile_in_the_background_into_the_same_run(tmp_path):
     assert list(engine._pending) == ["feedback_round/first", "feedback_round", "eval"]
     for pending in engine._pending.values():
         pending.result()
-    host.run(ahead, prepare_run_dir(ahead), progress=False, engine=engine)
+    train(ahead, prepare_run_dir(ahead), progress=False, engine=engine)
     assert {"eval", "feedback_round/first", "feedback_round"} <= set(engine.ahead_seconds)
 
     inline = _cfg(tmp_path, "inline", seeds=(7,), steps=100, eval_every=60)
-    engine = Engine(inline)
-    host.run(inline, prepare_run_dir(inline), progress=False, engine=engine, compile_ahead="off")
+    engine = build_engine(inline)
+    train(inline, prepare_run_dir(inline), progress=False, engine=engine, compile_ahead="off")
     assert not engine.ahead_seconds
     assert (tmp_path / "ahead" / "eval.csv").read_text() == (tmp_path / "inline" / "eval.csv").read_text()
     rounds = lambda run: [r for r in _records(tmp_path / run) if "reward/true_corr" in r]
@@ -187,12 +187,12 @@ def test_background_compiles_start_when_asked(tmp_path, when):
     chunk's program (the two compiles would share the cores and delay the first env step);
     `first_phase_apart` the same after the random phase's own program; `at_start` before."""
     cfg = _cfg(tmp_path, when, seeds=(7,), steps=60, eval_every=60)
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     compiled_then = []
     queue = engine.compile_run_ahead
     engine.compile_run_ahead = lambda rs, step: (compiled_then.append(set(engine._compiled)),
                                                  queue(rs, step))
-    host.run(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
+    train(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
     first = {"after_first": {"chunk/20"}, "first_phase_apart": {"chunk/20/random"},
              "at_start": set()}[when]
     # the episode-starts and initial-state programs made the first run state (`init_seeds`);

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 
 from hprior_jax import presets
-from hprior_jax.loop import host
-from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import load_run_config, prepare_run_dir
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.run_dir import load_run_config, prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.methods.prior import PriorConfig
 
@@ -30,17 +29,17 @@ def _records(run_dir):
 
 
 def _run(cfg, **kw):
-    return host.run(cfg, prepare_run_dir(cfg), progress=False, **kw)
+    return train(cfg, prepare_run_dir(cfg), progress=False, **kw)
 
 
 def test_world_model_schedule(tmp_path):
-    method = Engine(_cfg(tmp_path, "s", steps=200)).method
+    method = build_engine(_cfg(tmp_path, "s", steps=200)).method
     # feedback rounds as PEBBLE; the world model pre-trains at the first round (seed + unsup
     # = 40), then the dynamics model trains at every multiple of j = 60 after it
     assert method.rounds() == [(40, 10), (80, 10), (120, 10), (160, 10)]
     assert method.ext.event_steps() == [40, 60, 120, 180]
     assert method.event_steps() == [40, 60, 80, 120, 160, 180]
-    rvar = Engine(_cfg(tmp_path, "r", algo="rvar", steps=200)).method
+    rvar = build_engine(_cfg(tmp_path, "r", algo="rvar", steps=200)).method
     assert rvar.event_steps() == [40, 80, 120, 160]  # uniform α: no world model to train
 
 
@@ -188,8 +187,8 @@ def test_prior_resume_equals_uninterrupted(runs, tmp_path):
     cfg, full, _ = runs["prior"]
     cfg = dataclasses.replace(cfg, out=str(tmp_path / "split"))
     run_dir = prepare_run_dir(cfg)
-    host.run(cfg, run_dir, progress=False, max_chunks=3)  # stops after the first round
-    resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
+    train(cfg, run_dir, progress=False, max_chunks=3)  # stops after the first round
+    resumed = train(load_run_config(run_dir), run_dir, resume=True, progress=False)
     for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(resumed)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 

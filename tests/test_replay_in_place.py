@@ -10,7 +10,7 @@ import re
 import pytest
 
 from hprior_jax import presets
-from hprior_jax.loop.engine import Engine
+from hprior_jax.runs.build import build_engine
 from hprior_jax.agents.sac import SACConfig
 
 SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2)
@@ -41,7 +41,7 @@ def buffer_sized_ops(hlo_text: str, capacity: int) -> list[str]:
     ("pebble", dict(steps=20 * 4099)),  # PbRL buffers hold every step (whole 20-step episodes)
 ])
 def test_chunk_updates_the_replay_buffer_in_place(algo, sizes):
-    engine = Engine(presets.train_preset("toy_point", algo, "smoke", **SMALL, **sizes))
+    engine = build_engine(presets.train_preset("toy_point", algo, "smoke", **SMALL, **sizes))
     cap = engine.cfg.capacity
     rs = engine.init_seeds([1, 2])
     hlo = engine.compiled_chunk(rs, engine.cfg.num_seed_steps, 10).as_text()

@@ -468,7 +468,7 @@ def test_a_dataset_is_made_only_from_a_sac_run(tmp_path):
     """`--dataset-from-run` refuses another method's run before reading any checkpoint."""
     from hprior_jax import presets
     from hprior_jax.lab import dataset as datasets
-    from hprior_jax.loop.run_dir import prepare_run_dir
+    from hprior_jax.runs.run_dir import prepare_run_dir
 
     other = presets.train_preset("toy_point", registry.LAB_REFERENCE, "smoke", steps=200,
                                  out=str(tmp_path / "pebble"))
@@ -484,13 +484,13 @@ def test_a_dataset_from_an_existing_sac_run_equals_the_one_build_makes(tmp_path)
     same seed and steps itself."""
     from hprior_jax import presets
     from hprior_jax.lab import dataset as datasets
-    from hprior_jax.loop import host
-    from hprior_jax.loop.run_dir import prepare_run_dir
+    from hprior_jax.runs.build import train
+    from hprior_jax.runs.run_dir import prepare_run_dir
 
     built = datasets.build("toy_point", seed=3, steps=200, preset="smoke", progress=False)
     cfg = presets.train_preset("toy_point", registry.REFERENCE, "smoke", steps=200, seeds=(3,),
                                eval_every=100, checkpoint_every=100, out=str(tmp_path / "sac"))
-    host.run(cfg, prepare_run_dir(cfg), progress=False)
+    train(cfg, prepare_run_dir(cfg), progress=False)
     made = datasets.from_run(tmp_path / "sac")
     for name in ("train_obs", "train_act", "train_reward", "test_obs", "test_reward",
                  "pair_index", "pair_label"):

@@ -8,8 +8,8 @@ import pytest
 
 from hprior_jax import cli
 from hprior_jax.loop import host
-from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.run_dir import RunDirError, load_run_config, prepare_run_dir
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.run_dir import RunDirError, load_run_config, prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import RunConfig
 
@@ -27,10 +27,10 @@ def _leaves(rs):
 
 
 def test_seed_alone_equals_its_slot_in_a_vmapped_batch(tmp_path):
-    both = host.run(_cfg(tmp_path, "both", seeds=(12345, 23456)),
+    both = train(_cfg(tmp_path, "both", seeds=(12345, 23456)),
                      prepare_run_dir(_cfg(tmp_path, "both", seeds=(12345, 23456))),
                      progress=False)
-    alone = host.run(_cfg(tmp_path, "alone", seeds=(12345,)),
+    alone = train(_cfg(tmp_path, "alone", seeds=(12345,)),
                       prepare_run_dir(_cfg(tmp_path, "alone", seeds=(12345,))),
                       progress=False)
     for a, b in zip(_leaves(alone), _leaves(both)):
@@ -44,7 +44,7 @@ def test_episodes_start_from_the_resets_of_the_chunks_own_key_stream(tmp_path):
     `env.reset` of the key the chunk's own step draws at each episode end, found here by
     walking the chunk's key stream by hand."""
     cfg = _cfg(tmp_path, seeds=(12345, 23456), chunk_steps=50)  # toy episodes: 20 steps
-    engine = Engine(cfg)
+    engine = build_engine(cfg)
     assert engine.starts_per_chunk == 3
     rs = engine.init_seeds(cfg.seeds)
     step0, length = 5, 45  # episode ends at steps 19 and 39
@@ -70,12 +70,12 @@ def test_episodes_start_from_the_resets_of_the_chunks_own_key_stream(tmp_path):
 def test_resume_equals_uninterrupted(tmp_path):
     """2 chunks + checkpoint + restore + 2 chunks == 4 chunks."""
     cfg_full = _cfg(tmp_path, "full")
-    full = host.run(cfg_full, prepare_run_dir(cfg_full), progress=False)
+    full = train(cfg_full, prepare_run_dir(cfg_full), progress=False)
     cfg = _cfg(tmp_path, "split")
     run_dir = prepare_run_dir(cfg)
-    host.run(cfg, run_dir, progress=False, max_chunks=2)
+    train(cfg, run_dir, progress=False, max_chunks=2)
     assert (run_dir / "checkpoints").exists()
-    resumed = host.run(load_run_config(run_dir), run_dir, resume=True, progress=False)
+    resumed = train(load_run_config(run_dir), run_dir, resume=True, progress=False)
     for a, b in zip(_leaves(full), _leaves(resumed)):
         np.testing.assert_array_equal(a, b)
     rows = list(csv.DictReader(open(run_dir / "eval.csv")))
@@ -97,7 +97,7 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_checkpoint(tmp_path):
     cfg = _cfg(tmp_path, "nan", task="toy_nan", num_seed_steps=40)
     run_dir = prepare_run_dir(cfg)
     with pytest.raises(host.TrainingDiverged, match="--sac.lr.*--resume"):
-        host.run(cfg, run_dir, progress=False)
+        train(cfg, run_dir, progress=False)
     assert (run_dir / "error.txt").exists()
     assert (run_dir / "checkpoints" / "40").exists()  # the last good state is kept
     assert (run_dir / "config.json").exists()
@@ -180,7 +180,7 @@ def test_cli_unknown_task_lists_available(capsys):
 
 def test_random_phase_collects_without_updating(tmp_path):
     cfg = _cfg(tmp_path, "seedphase", num_seed_steps=40)
-    trainer = Engine(cfg)
+    trainer = build_engine(cfg)
     rs0 = trainer.init_seeds(cfg.seeds)
     init_actor = [np.asarray(x) for x in jax.tree.leaves(rs0.sac.actor)]
     rs, metrics = trainer.run_chunk(rs0, 0, 20)

@@ -68,8 +68,8 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
                            out: Path | None = None) -> list[Path]:
     """Restores the latest checkpoint of a run with a world model (PRIOR, PRIOR-NRP) and draws both segments of stored
     preference pair `pair` for `seed` (default: the run's first). Returns the PNG paths."""
-    from hprior_jax.loop.restore import restore_run
-    from hprior_jax.loop.run_dir import load_run_config
+    from hprior_jax.runs.restore import restore_run
+    from hprior_jax.runs.run_dir import load_run_config
     from hprior_jax.methods import registry
 
     run_dir = Path(run_dir)

@@ -17,7 +17,7 @@ def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
 
     The episodes use the evaluation keys of the run at that step, so with the run's own
     episode count they are the episodes of its eval.csv row at that step."""
-    from hprior_jax.loop.restore import restore_run
+    from hprior_jax.runs.restore import restore_run
 
     if episodes < 1:
         raise ValueError(f"--episodes must be positive, got {episodes}")

@@ -49,7 +49,7 @@ def run_status(cfg: RunConfig) -> str:
 
     A directory holding a run of another configuration is an error: mixing budgets or
     seeds in one table would be silent nonsense."""
-    from hprior_jax.loop.run_dir import load_run_config
+    from hprior_jax.runs.run_dir import load_run_config
 
     run_dir = Path(cfg.out)
     if not run_dir.exists() or not any(run_dir.iterdir()):
@@ -130,7 +130,7 @@ def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress
     import jax
 
     from hprior_jax.loop import devices as seed_devices, host
-    from hprior_jax.loop.engine import Engine
+    from hprior_jax.runs import build
 
     spec = dict(tasks=list(tasks), algos=list(algos), seeds=list(seeds), budget=budget,
                 overrides=overrides or {}, written=time.strftime("%Y-%m-%d %H:%M:%S"))
@@ -164,9 +164,9 @@ def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress
     stop = host.StopRequest() if side_by_side else None
 
     def run_lane(lane, group):
-        train = train_fn or (lambda cfg, run_dir, resume: host.run(
+        train = train_fn or (lambda cfg, run_dir, resume: build.train(
             cfg, run_dir, resume=resume, progress=progress and not side_by_side,
-            engine=Engine(cfg, group), interrupt=stop))
+            engine=build.build_engine(cfg, group), interrupt=stop))
         for r in lane:
             _train_one(r, runs, seeds, train)
 
@@ -192,7 +192,7 @@ def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress
 
 
 def _train_one(r: GridRun, runs, seeds, train) -> None:
-    from hprior_jax.loop.run_dir import prepare_run_dir
+    from hprior_jax.runs.run_dir import prepare_run_dir
 
     head = (f"[{runs.index(r) + 1}/{len(runs)}] {r.task} {r.algo} "
             f"(seeds {', '.join(map(str, seeds))})")
@@ -225,9 +225,9 @@ def calibrate(cfg: RunConfig, devices) -> float:
     persistent cache when the run starts)."""
     import jax
 
-    from hprior_jax.loop.engine import Engine
+    from hprior_jax.runs.build import build_engine
 
-    engine = Engine(cfg, devices)
+    engine = build_engine(cfg, devices)
     seeds = list(cfg.seeds)
 
     def seconds(program) -> float:

@@ -138,8 +138,7 @@ def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "r
     of `steps` steps. `physics`: keep the training steps' physics states too (the same
     run: recording them changes no number)."""
     from hprior_jax import presets
-    from hprior_jax.loop import host
-    from hprior_jax.loop.engine import Engine
+    from hprior_jax.runs.build import build_engine, train
     from hprior_jax.methods import registry
 
     length = task_info(task).episode_length
@@ -149,8 +148,8 @@ def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "r
                                eval_every=steps, checkpoint_every=steps)
     with tempfile.TemporaryDirectory() as tmp:
         cfg = dataclasses.replace(cfg, out=tmp)
-        rs = host.run(cfg, Path(tmp), progress=progress,
-                      engine=Engine(cfg, records_physics=physics))
+        rs = train(cfg, Path(tmp), progress=progress,
+                      engine=build_engine(cfg, records_physics=physics))
     replay = jax.tree.map(lambda x: np.asarray(x)[0], rs.replay)
     return _from_replay(task, replay, steps, seed, preset, f"SAC ({preset}) replay buffer",
                         t0, heldout_every, num_pairs)
@@ -162,8 +161,8 @@ def from_run(run_dir: Path, seed: int | None = None, heldout_every: int = 3,
     replay buffer (one seed, default the run's first), as `build` would keep it. Saves the
     SAC run that `build` would repeat; the file it is saved under names the run's seed,
     checkpoint step and preset."""
-    from hprior_jax.loop.restore import restore_run
-    from hprior_jax.loop.run_dir import load_run_config
+    from hprior_jax.runs.restore import restore_run
+    from hprior_jax.runs.run_dir import load_run_config
     from hprior_jax.methods import registry
 
     t0 = time.perf_counter()

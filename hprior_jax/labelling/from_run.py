@@ -14,7 +14,7 @@ def queries_from_run(run_dir: Path, out: Path, pairs: int = 10, segment_len: int
     `sample` is False), at independent random starts. Returns the query ids."""
     from hprior_jax.experiments.evaluate_run import episode_states
     from hprior_jax.labelling.store import write_queries
-    from hprior_jax.loop.restore import restore_run
+    from hprior_jax.runs.restore import restore_run
 
     if pairs < 1:
         raise ValueError(f"--pairs must be positive, got {pairs}")

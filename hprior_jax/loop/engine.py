@@ -10,8 +10,6 @@ position) stay scalar. The engine holds no mutable run state and names no method
 """
 from __future__ import annotations
 
-import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 
 import jax
@@ -24,7 +22,7 @@ from hprior_jax.envs import EnvState, make_env, task_info, task_options
 from hprior_jax.evaluate import evaluate_policy
 from hprior_jax.loop import devices as seed_devices
 from hprior_jax.loop.state import RunState
-from hprior_jax.methods import registry
+from hprior_jax.loop.programs import ProgramCache, abstract, shapes, timed
 from hprior_jax.setup_jax import compiler_options
 
 
@@ -32,9 +30,10 @@ STARTS = "episode_starts"  # the program of the states new episodes begin from
 INIT = "init"  # the program of every seed's first run state
 
 
-class Engine:
-    def __init__(self, cfg, devices=None, records_physics: bool = False):
-        """`devices`: how many devices the seeds are split over (default: as many as divide
+class Engine(ProgramCache):
+    def __init__(self, cfg, build_method, devices=None, records_physics: bool = False):
+        """`build_method(cfg, engine)`: the method's hooks (`methods.registry`'s `build`).
+        `devices`: how many devices the seeds are split over (default: as many as divide
         the seeds evenly), or which (`hprior_jax.loop.devices.seed_mesh`).
         `records_physics`: the replay buffer keeps the physics state behind each obs (what a
         clip is rendered from), as it does anyway for a method that asks a person."""
@@ -48,14 +47,10 @@ class Engine:
         # every program of the run compiles with these (XLA's optimisation level)
         self.compiler_options = compiler_options(cfg.compile_level,
                                                  task_info(cfg.task).compile_level)
-        self._compiled: dict = {}
-        self.compile_seconds: dict[str, float] = {}  # the wall time a program cost the run
-        self.ahead_seconds: dict[str, float] = {}  # compile time spent ahead, in the background
-        self._ahead: ThreadPoolExecutor | None = None
-        self._pending: dict[str, Future] = {}
+        ProgramCache.__init__(self)
         self.first_phase_apart = False  # see _chunk_name; the host sets it
         self.person = None  # a human teacher, attached by the host loop when one is asked
-        self.method = registry.get(cfg.algo).build(cfg, self)
+        self.method = build_method(cfg, self)
         self.records_physics = records_physics or self.method.asks_person
         self.phases = self.method.phases()
         starts = [p.start for p in self.phases]
@@ -211,40 +206,6 @@ class Engine:
         return evaluate_policy(self.eval_env, policy, key)
 
     # -- compiled, vmapped over seeds ---------------------------------------------------------
-    def compile(self, name: str, fn, *args):
-        """Compiles ahead of time so compile time is measured apart from run time (a program
-        already compiling in the background, `compile_ahead`, is waited for: the wait is its
-        cost to the run).
-
-        Lowered from shapes and dtypes only: arrays restored from a checkpoint are committed
-        to their device, and lowering from them would annotate the program with that
-        placement, so a resumed run would miss the persistent compilation cache that a
-        fresh run of the same shapes hits."""
-        if name not in self._compiled:
-            t0 = time.perf_counter()
-            pending = self._pending.pop(name, None)
-            if pending is not None and not pending.cancel():
-                self._compiled[name], self.ahead_seconds[name] = pending.result()
-            else:
-                self._compiled[name] = _lower_and_compile(fn, _shapes(args))[0]
-            self.compile_seconds[name] = time.perf_counter() - t0
-        return self._compiled[name]
-
-    def compile_ahead(self, name: str, fn, *args) -> None:
-        """Starts compiling `fn` for `args`' shapes in a background thread, so a later
-        `compile(name, ...)` finds it ready. XLA's CPU programs run on one core here and a
-        compile on one core, so on two cores the compile of a later phase's programs costs
-        the run little wall time."""
-        self._in_background(name, partial(_lower_and_compile, fn, _shapes(args)))
-
-    def _in_background(self, name: str, compile_it) -> None:
-        """Runs `compile_it() -> (program, seconds)` on the background thread, in turn."""
-        if name in self._compiled or name in self._pending:
-            return
-        if self._ahead is None:
-            self._ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile-ahead")
-        self._pending[name] = self._ahead.submit(compile_it)
-
     def compile_start(self, seeds, step: int, capacity: int | None = None) -> None:
         """Compiles the programs a run's first env step waits for side by side: the
         episode-starts and initial-state programs on the background thread while this one
@@ -252,15 +213,15 @@ class Engine:
         lowering them gives, so on two cores the first env step waits for the longer
         compile, not all (`init_seeds(seeds, capacity)` then finds them ready)."""
         keys = self._env_keys(seeds)
-        starts = self._starts_program().lower(*_shapes((keys,)))
-        self._in_background(STARTS, partial(_timed, starts.compile))
-        env = jax.tree.map(_abstract, starts.out_info)
+        starts = self._starts_program().lower(*shapes((keys,)))
+        self._in_background(STARTS, partial(timed, starts.compile))
+        env = jax.tree.map(abstract, starts.out_info)
         seed_keys = jax.ShapeDtypeStruct((len(seeds), 2), np.uint32)
         name = self._init_name(capacity)
         init = self._init_program(capacity).lower(seed_keys, env)
-        self._in_background(name, partial(_timed, init.compile))
+        self._in_background(name, partial(timed, init.compile))
         if name == INIT:
-            rs = jax.tree.map(_abstract, init.out_info)
+            rs = jax.tree.map(abstract, init.out_info)
         else:  # a resumed run grows its buffer to this run's capacity before its first chunk
             rs = jax.eval_shape(self._init_program(None), seed_keys, env)
         self.compiled_chunk(rs, step, self.chunk_plan(step)[1])
@@ -292,12 +253,6 @@ class Engine:
             else:
                 length = int(name.split("/")[1])
                 self.compile_ahead(name, *self._chunk_program(rs, step, length, name))
-
-    def close(self) -> None:
-        """Drops the background compiles not started (one in progress finishes)."""
-        if self._ahead is not None:
-            self._ahead.shutdown(wait=False, cancel_futures=True)
-            self._ahead, self._pending = None, {}
 
     def per_seed(self, fn, in_axes=(0,), donate_argnums=()):
         """`fn` of one seed as a jitted program over every seed, split over the mesh:
@@ -400,30 +355,9 @@ def eval_key(seed: int, step: int) -> jax.Array:
     return jax.random.fold_in(jax.random.PRNGKey(seed), 0x5EED0000 + step)
 
 
-def _shapes(args):
-    return jax.tree.map(_abstract, args)
-
-
-def _lower_and_compile(fn, shapes):
-    """-> (the compiled program, its compile seconds)."""
-    return _timed(lambda: fn.lower(*shapes).compile())
-
-
-def _timed(make):
-    t0 = time.perf_counter()
-    return make(), time.perf_counter() - t0
-
-
 def env_key(seed_key: jax.Array) -> jax.Array:
     """The key of a seed's first episode (`Engine.init`'s split)."""
     return jax.random.split(seed_key, 4)[1]
-
-
-def _abstract(x) -> jax.ShapeDtypeStruct:
-    if isinstance(x, jax.ShapeDtypeStruct):
-        return x
-    weak = getattr(getattr(x, "aval", None), "weak_type", False)
-    return jax.ShapeDtypeStruct(np.shape(x), np.result_type(x), weak_type=weak)
 
 
 def _next_multiple(step: int, every: int) -> int:

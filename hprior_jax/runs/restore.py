@@ -9,7 +9,11 @@ from pathlib import Path
 
 import jax
 
+from hprior_jax.checkpoint import Checkpointer
+from hprior_jax.loop.checkpoints import CheckpointUnreadable, first_line, restore_latest
 from hprior_jax.loop.state import RunState
+from hprior_jax.runs.build import build_engine
+from hprior_jax.runs.run_dir import load_run_config
 
 
 @dataclass
@@ -37,11 +41,6 @@ def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored
     """The checkpoint at `step` (default: the newest that restores; a newer damaged one is
     named in one line on stderr and skipped) of `run_dir`; `overrides` replace config fields
     that do not change the state's shapes (e.g. num_eval_episodes)."""
-    from hprior_jax.checkpoint import Checkpointer
-    from hprior_jax.loop.engine import Engine
-    from hprior_jax.loop.host import CheckpointUnreadable, first_line, restore_latest
-    from hprior_jax.loop.run_dir import load_run_config
-
     run_dir = Path(run_dir)
     cfg = dataclasses.replace(load_run_config(run_dir), **overrides)
     ckpt = Checkpointer(run_dir / "checkpoints")
@@ -52,7 +51,7 @@ def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored
         if step is not None and step not in steps:
             raise ValueError(f"--step {step}: {run_dir} keeps checkpoints at steps "
                              f"{', '.join(map(str, steps))} only")
-        engine = Engine(cfg)
+        engine = build_engine(cfg)
         candidates = [step] if step is not None else steps[::-1]
         initial = {}  # a real initial state per replay capacity: leaves a checkpoint lacks
         for i, candidate in enumerate(candidates):

@@ -2,9 +2,9 @@
 
 Format 1 (before methods were plug-ins) wrote every section (`pebble`, `prior`) into every
 run's config.json, chose PRIOR-NRP and RVAR by `prior.variant`, and kept the method's state
-under `extra` in checkpoints. `read_config` turns such a file into today's config, and
-`legacy_checkpoint_name` maps today's state to the leaf names its checkpoints hold, so a run
-written then still resumes.
+under `extra` in checkpoints. `read_config` turns such a file into today's config (and
+`loop.checkpoints.legacy_checkpoint_name` maps today's state to the leaf names its checkpoints
+hold), so a run written then still resumes.
 """
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ import os
 import time
 from pathlib import Path
 
-from hprior_jax.config import RunConfig
+from hprior_jax.config import RunConfig, differing_fields
+from hprior_jax.loop.run_files import EXTENDING, latest_checkpoint_step, write_atomic
 from hprior_jax.methods import registry
 
 
@@ -64,7 +65,7 @@ def write_config(run_dir: Path, cfg: RunConfig, run_info: dict | None) -> None:
     d = json.loads(cfg.to_json())
     if run_info is not None:
         d["run_info"] = run_info
-    _write_atomic(Path(run_dir) / "config.json", json.dumps(d, indent=2) + "\n")
+    write_atomic(Path(run_dir) / "config.json", json.dumps(d, indent=2) + "\n")
 
 
 def run_info_of(run_dir: Path) -> dict | None:
@@ -83,22 +84,10 @@ def read_config(d: dict) -> RunConfig:
     return RunConfig.from_dict(d)
 
 
-def legacy_checkpoint_name(name: str) -> str | None:
-    """A leaf name of today's RunState -> its name in a format-1 checkpoint, or None for a
-    leaf those do not hold (λ was a compile-time constant then: the state takes it from
-    config.json)."""
-    if name.startswith(".method.ext.lam"):
-        return None
-    return name.replace(".method.ext.", ".extra.").replace(".method.", ".extra.")
-
-
 # what a resumed run may change: the budget and the cadences (they decide when to evaluate
 # and save, not what is learned); everything else would make a different run
 CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
                         "keep_checkpoints")
-
-
-EXTENDING = "config.extending.json"  # an extension's config until its first checkpoint
 
 
 def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int | None]:
@@ -107,8 +96,6 @@ def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int |
     until the resumed run writes its first checkpoint (`commit_extension`), so a run stopped
     before that still resumes as it was. Returns the config and the replay capacity of the
     run's checkpoints when it changes."""
-    from hprior_jax.config import differing_fields
-
     old = load_run_config(run_dir)
     changed = [k for k in differing_fields(old, requested) if k != "out"]
     refused = [k for k in changed if k not in CHANGEABLE_ON_RESUME]
@@ -132,60 +119,9 @@ def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int |
     new = dataclasses.replace(new, out=old.out)
     pending = json.loads(new.to_json())
     pending["run_info"] = run_info_of(run_dir)
-    _write_atomic(Path(run_dir) / EXTENDING, json.dumps(
+    write_atomic(Path(run_dir) / EXTENDING, json.dumps(
         {"from_step": checkpoint_step or 0, "config": pending}, indent=2) + "\n")
     return new, old.capacity if new.capacity != old.capacity else None
-
-
-def commit_extension(run_dir: Path) -> str | None:
-    """Makes a pending extension the run's config (the previous one kept as
-    config.steps<OLD>.json); called once its first checkpoint exists. -> a line saying so,
-    or None when no extension was pending."""
-    run_dir = Path(run_dir)
-    pending = run_dir / EXTENDING
-    if not pending.exists():
-        return None
-    new = json.loads(pending.read_text())["config"]
-    old_text = (run_dir / "config.json").read_text()
-    old_steps = json.loads(old_text)["steps"]
-    _write_atomic(run_dir / f"config.steps{old_steps}.json", old_text)
-    _write_atomic(run_dir / "config.json", json.dumps(new, indent=2) + "\n")
-    pending.unlink()
-    return f"the run's budget is now {new['steps']} steps (was {old_steps})"
-
-
-def settle_extension(run_dir: Path, latest_step: int | None) -> str | None:
-    """An extension left pending by a stopped process: committed when a checkpoint past the
-    step it started from exists (it checkpointed, then stopped before the commit), otherwise
-    rolled back. -> one line saying which, or None when none was pending."""
-    pending = Path(run_dir) / EXTENDING
-    if not pending.exists():
-        return None
-    record = json.loads(pending.read_text())
-    if latest_step is not None and latest_step > record["from_step"]:
-        return "an interrupted extension had checkpointed: " + commit_extension(run_dir)
-    pending.unlink()
-    return (f"an extension to {record['config']['steps']} steps was interrupted before its "
-            f"first checkpoint: rolled back, the run resumes as configured before it")
-
-
-def latest_checkpoint_step(run_dir: Path) -> int | None:
-    """The newest finished checkpoint's step (orbax renames a checkpoint's folder to its step
-    only once it is complete), or None."""
-    folder = Path(run_dir) / "checkpoints"
-    steps = [int(p.name) for p in folder.iterdir() if p.name.isdigit()] if folder.is_dir() else []
-    return max(steps, default=None)
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    """Writes `text` to a temporary file beside `path`, then renames it over `path`: a kill
-    leaves the old file or the new one, never half of one."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _get(cfg, dotted: str):

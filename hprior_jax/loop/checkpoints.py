@@ -1,0 +1,75 @@
+"""Saving and restoring a run's checkpoints: the newest readable one, a damaged one set
+aside, and the leaf names of the first checkpoint format (before methods were plug-ins, a
+method's state was kept under `extra`)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from hprior_jax.loop import devices
+from hprior_jax.loop.run_files import commit_extension
+from hprior_jax.loop.state import RunState
+
+
+class CheckpointUnreadable(ValueError):
+    """No checkpoint of a run could be restored; the message names the newest and why."""
+
+
+def save(ckpt, step: int, rs: RunState, run_dir: Path, say) -> None:
+    """A checkpoint, then a pending extension of the run's budget becomes its config (it
+    now has a checkpoint it can resume from)."""
+    ckpt.save(step, rs)
+    if devices.is_primary():
+        note = commit_extension(run_dir)
+        if note:
+            say(note)
+
+
+def restore_latest(ckpt, like: RunState, step: int | None = None, on_unreadable=None):
+    """The checkpoint at `step`, or by default the newest one that restores (written by
+    today's state layout or the first one). A newer one that does not (a truncated or
+    missing file) is passed to `on_unreadable(step, error)` and the next older is tried;
+    without `on_unreadable`, or when none restores, CheckpointUnreadable names it."""
+    candidates = [step] if step is not None else sorted(ckpt.all_steps(), reverse=True)
+    for i, candidate in enumerate(candidates):
+        try:
+            stored = ckpt.stored_names(candidate)
+            legacy = any(name.startswith(".extra") for name in stored)
+            return ckpt.restore(like, candidate,
+                                rename=legacy_checkpoint_name if legacy else None)
+        except Exception as e:  # orbax raises many kinds for a damaged checkpoint
+            if on_unreadable is None or i + 1 == len(candidates):
+                raise CheckpointUnreadable(
+                    f"the checkpoint at step {candidate} in {ckpt.directory} cannot be "
+                    f"restored: {first_line(e)}") from e
+            on_unreadable(candidate, e)
+    raise CheckpointUnreadable(f"{ckpt.directory} holds no checkpoint")
+
+
+def legacy_checkpoint_name(name: str) -> str | None:
+    """A leaf name of today's RunState -> its name in a format-1 checkpoint, or None for a
+    leaf those do not hold (λ was a compile-time constant then: the state takes it from
+    config.json)."""
+    if name.startswith(".method.ext.lam"):
+        return None
+    return name.replace(".method.ext.", ".extra.").replace(".method.", ".extra.")
+
+
+def first_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0] if text else ''}"[:300]
+
+
+def set_aside(run_dir: Path, step: int, error: BaseException) -> Path:
+    """Moves the unreadable checkpoint of `step` to RUN/broken_checkpoints/ (kept for a
+    post-mortem, out of the way of the next save at that step) and says so in one line."""
+    src = Path(run_dir) / "checkpoints" / str(step)
+    dest = Path(run_dir) / "broken_checkpoints" / str(step)
+    n = 1
+    while dest.exists():
+        dest, n = Path(run_dir) / "broken_checkpoints" / f"{step}.{n}", n + 1
+    dest.parent.mkdir(exist_ok=True)
+    src.rename(dest)
+    print(f"the checkpoint at step {step} cannot be restored ({first_line(error)}); moved "
+          f"to {dest}, resuming from the newest readable one", file=sys.stderr, flush=True)
+    return dest
