@@ -332,14 +332,14 @@ def _label(argv: list[str]) -> int:
 
         check_out_dir(Path(args.dir))
         if args.from_run:
-            from hprior_jax.labelling.from_run import queries_from_run
+            from hprior_jax.experiments.label_queries import queries_from_run
             from hprior_jax.setup_jax import enable_compilation_cache
 
             enable_compilation_cache()
             ids = queries_from_run(args.from_run, args.dir, args.pairs, args.segment_len,
                                    args.seed)
         else:
-            from hprior_jax.labelling.from_lab import queries_from_lab
+            from hprior_jax.lab.human_labels import queries_from_lab
 
             ids = queries_from_lab(args.from_lab, args.dir, args.pairs, args.seed or 0)
         print(f"wrote {len(ids)} queries to {args.dir}", flush=True)
@@ -519,8 +519,8 @@ def _reward_lab(argv: list[str]) -> int:
                              "RULE[TAG]")
     parser.add_argument("--tag", default=None,
                         help="TAG of --prior-set (default: the settings); merge the reports "
-                             "of several labs with `python -m hprior_jax.experiments."
-                             "lab_report A/results.csv B/results.csv OUT`")
+                             "of several labs with `python -m hprior_jax.lab.report "
+                             "A/results.csv B/results.csv OUT`")
     parser.add_argument("--no-world-model-cache", action="store_true",
                         help="train the seeds' world models even when a lab of the same "
                              "dataset, seeds and world-model settings left them in "
@@ -532,7 +532,7 @@ def _reward_lab(argv: list[str]) -> int:
                              "prior~shift:positional~shift@oracle~shift:rvar/2")
     parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
     args = parser.parse_args(argv)
-    from hprior_jax.experiments.contrasts import Contrast
+    from hprior_jax.lab.contrasts import Contrast
     from hprior_jax.lab.sweep import lab_config, run_lab
 
     try:
@@ -544,7 +544,7 @@ def _reward_lab(argv: list[str]) -> int:
     enable_compilation_cache()
     given = None
     if args.labels:
-        from hprior_jax.labelling.from_lab import given_labels
+        from hprior_jax.lab.human_labels import given_labels
 
         path, given, unanswered = given_labels(Path(args.labels))
         data = datasets.Dataset.load(path)

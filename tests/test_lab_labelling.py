@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from hprior_jax.lab.dataset import random_pairs
-from hprior_jax.lab.learn import GivenLabels, Lab
+from hprior_jax.lab.config import GivenLabels
+from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.sweep import score
 from tests.test_reward_lab import T, confounded, quiet, tiny
 

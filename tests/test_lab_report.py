@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hprior_jax.experiments import lab_report
-from hprior_jax.experiments.lab_report import METRICS, summarize, write_report
+from hprior_jax.lab import report as lab_report
+from hprior_jax.lab.report import METRICS, summarize, write_report
 from hprior_jax.statistics import (mean_ci, minimum_detectable_effect, paired_comparison,
                                    paired_power)
 

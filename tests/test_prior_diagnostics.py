@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hprior_jax.lab.learn import Lab, SeedContext, held_out_segments
+from hprior_jax.lab.learn import Lab
+from hprior_jax.lab.seed_world_model import SeedContext, held_out_segments
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.diagnostics import (credit_diagnostics, next_state_errors,
                                           world_model_diagnostics)

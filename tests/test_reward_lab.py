@@ -12,7 +12,8 @@ from scipy import stats
 
 from hprior_jax.lab import metrics
 from hprior_jax.lab.dataset import Dataset, heldout_pairs, split_episodes
-from hprior_jax.lab.learn import Lab, LabConfig
+from hprior_jax.lab.config import LabConfig
+from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.sweep import default_rules, lab_config, rules
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -178,7 +179,7 @@ def test_unlabelled_segments_carry_their_rules_credit(data):
     (positional_unlabelled), or the segment's own attention (prior_unlabelled)."""
     import jax
 
-    from hprior_jax.lab.learn import CREDITS
+    from hprior_jax.lab.config import CREDITS
 
     names = ["prior_unlabelled", "rvar_unlabelled", "positional_unlabelled"]
     cfg = lab_config(dataclasses.replace(data, task="toy_point"), "smoke", names)
@@ -245,7 +246,8 @@ def test_a_prior_rule_at_lambda_zero_is_pebble_and_the_ablations_and_bisim_chang
 def test_bisim_transitions_from_episodes_never_cross_an_episode_end():
     import jax
 
-    from hprior_jax.lab.learn import Episodes, episode_transitions
+    from hprior_jax.lab.config import Episodes
+    from hprior_jax.lab.rounds import episode_transitions
 
     e, length = 5, 7
     step = np.arange(e * length, dtype=np.float32).reshape(e, length, 1)  # obs = global step
@@ -276,7 +278,7 @@ def test_a_labs_world_models_are_kept_and_the_next_lab_of_the_same_settings_load
     import jax
     import jax.numpy as jnp
 
-    from hprior_jax.lab import world_model_cache as cache
+    from hprior_jax.lab import seed_world_model as cache
 
     # with standardised world-model inputs, so the kept context holds the scaler too
     cfg = tiny(rules=("prior",), credits=("attention",), seeds=(0,), wm_normalize_obs=True)
@@ -506,7 +508,7 @@ def test_a_smaller_minibatch_while_every_pair_fits_in_one_is_the_same_update():
     import jax
 
     from hprior_jax.buffers import preferences
-    from hprior_jax.lab.learn import minibatch_size
+    from hprior_jax.lab.rounds import minibatch_size
     from hprior_jax.networks.reward_ensemble import init_reward_ensemble
     from hprior_jax.pbrl.preference import make_optimizer, train_reward
 
@@ -550,7 +552,7 @@ def test_surf_rule_stores_longer_segments_and_its_teacher_judges_the_middle(data
     import jax
     import jax.numpy as jnp
 
-    from hprior_jax.lab.learn import Episodes
+    from hprior_jax.lab.config import Episodes
     from hprior_jax.methods.surf import SurfConfig, SurfLabRule
 
     cfg = tiny(rules=("pebble",), credits=("none",), world_model=None)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from hprior_jax.experiments.contrasts import Contrast, evaluate, pooled
+from hprior_jax.lab.contrasts import Contrast, evaluate, pooled
 from hprior_jax.statistics import holm, pooled_difference, tost_p
 
 

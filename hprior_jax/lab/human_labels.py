@@ -51,7 +51,7 @@ def queries_from_lab(dataset: Path, out: Path, pairs: int = 50, seed: int = 0) -
 def given_labels(folder: Path):
     """(the dataset's path, `GivenLabels` of the answered queries of `folder`, how many were
     left unanswered)."""
-    from hprior_jax.lab.learn import GivenLabels
+    from hprior_jax.lab.config import GivenLabels
     from hprior_jax.labelling.store import QueryFolder
 
     path = Path(folder) / LAB_PAIRS

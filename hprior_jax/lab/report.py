@@ -4,7 +4,7 @@ match the true reward, against the reference rule PEBBLE, at several label budge
 The lab's raw results are rows, one per (task, rule, budget, seed), holding the reward-quality
 metrics of `METRICS` measured on held-out data (other columns are carried along, not used).
 `write_report` turns them into summary.csv, results.csv, one plot per (task, metric) and
-report.md; `python -m hprior_jax.experiments.lab_report RESULTS_CSV OUT_DIR` rebuilds all of it
+report.md; `python -m hprior_jax.lab.report RESULTS_CSV OUT_DIR` rebuilds all of it
 from a saved results.csv (several RESULTS_CSV: one report of several labs, `merge_results`).
 
 Statistical choices:
@@ -34,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hprior_jax.experiments import contrasts as contrast_tests  # noqa: E402
+from hprior_jax.lab import contrasts as contrast_tests  # noqa: E402
 from hprior_jax.lab.metrics import METRICS  # noqa: E402
 from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE  # noqa: E402
 from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison  # noqa: E402
@@ -376,7 +376,7 @@ def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=(), contrasts=
 
 def main(argv=None) -> Path:
     parser = argparse.ArgumentParser(
-        prog="python -m hprior_jax.experiments.lab_report",
+        prog="python -m hprior_jax.lab.report",
         description="Rebuild a reward-learning lab report from its raw results.csv, or merge "
                     "the results.csv of several labs (same dataset and seeds) into one report.")
     parser.add_argument("paths", type=Path, nargs="+", metavar="RESULTS_CSV... OUT_DIR")

@@ -1,0 +1,151 @@
+"""The lab's configuration and the data types its programs take: rules and their credit,
+labels given beforehand, the arguments that tell rules apart, fixed episodes."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import jax
+import numpy as np
+from flax import struct
+
+from hprior_jax.networks.reward_ensemble import RewardConfig
+from hprior_jax.pbrl.preference import PreferenceConfig
+from hprior_jax.pbrl.teacher import TeacherConfig
+from hprior_jax.prior import world_model as wm
+
+CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
+           "attention_no_own_step", "bisimulation")
+OWN_PROGRAM = "own_program"  # a method's rule that runs in a program of its own (its lab_rule)
+WORLD_MODEL_CREDITS = ("attention", "attention_nrp", "attention_no_own_step", "positional")
+NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
+BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
+CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
+# lab rules asked for by name: (credit, targets clipped, prior also on unlabelled segments).
+# The prior_* ones are `--algo prior` with a flag; the other two are prior_unlabelled's
+# controls, the same unlabelled segments under uniform credit (`--algo rvar
+# --rvar.unlabelled-segments N`) or positional credit (no method).
+ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False, False),  # exclude-own-step
+             "prior_clipped": ("attention", True, False),  # --prior.clip-targets
+             "prior_unlabelled": ("attention", False, True),  # --prior.unlabelled-segments N
+             "rvar_unlabelled": ("uniform", False, True),  # --rvar.unlabelled-segments N
+             "positional_unlabelled": ("positional", False, True)}
+UNLABELLED_SEGMENTS = 64  # the prior_unlabelled rule's N unless --prior-set sets it
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    rules: tuple[str, ...]  # rule names, in report order
+    credits: tuple[str, ...]  # the credit of each rule (CREDITS)
+    lam: float  # λ of every rule with a credit (the RL presets': 5 DMC, 1000 MetaWorld)
+    clips: tuple[bool, ...] = ()  # per rule: targets clipped to [-1, 1] (empty: none)
+    shifts: tuple[bool, ...] = ()  # per rule: the shifted target form (empty: all raw)
+    unlabelled: tuple[bool, ...] = ()  # per rule: the prior also on unlabelled segments
+    unlabelled_segments: int = UNLABELLED_SEGMENTS  # drawn afresh each round (prior.unlabelled)
+    rule_lams: tuple[float | None, ...] = ()  # per rule: its own λ instead of `lam` (None: lam)
+    bisim_lam: float = 0.5  # λ_bisim of the bisim rule (BISIM's default)
+    bisim_transitions: int = 4  # transitions per stored-pair row (BISIM's default)
+    discount: float = 0.99  # γ of the bisimulation target (SAC's, as in BISIM)
+    own_rules: tuple = ()  # (rule, its method's lab rule object) of every OWN_PROGRAM rule
+    budgets: tuple[int, ...] = (25, 100, 400)
+    queries_per_round: int = 10
+    feed_type: str = "disagreement"
+    large_batch: int = 10
+    one_shot: bool = False
+    """Train once on all of a budget's labels (uniform queries) instead of round by round."""
+    seeds: tuple[int, ...] = tuple(range(20))
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    preference: PreferenceConfig = field(default_factory=PreferenceConfig)
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    world_model: wm.WorldModelConfig | None = None
+    wm_pretrain_steps: int = 300
+    wm_steps: int = 600  # dynamics-only steps after the pre-training
+    wm_order: str = "joint"  # the pre-training's order (wm.pretrain)
+    wm_normalize_obs: bool = False  # standardised world-model inputs (an ablation)
+    attention_query: str = "action"
+    profile_segments: int = 256  # training segments the positional profile averages
+
+    def __post_init__(self):
+        if len(self.rules) != len(self.credits) or not self.rules:
+            raise ValueError("give one credit per rule")
+        own = [r for r, c in zip(self.rules, self.credits) if c == OWN_PROGRAM]
+        if own != [r for r, _ in self.own_rules]:
+            raise ValueError(f"give the lab rule object of every own-program rule {own}")
+        for name in ("clips", "shifts", "rule_lams", "unlabelled"):
+            if len(getattr(self, name)) not in (0, len(self.rules)):
+                raise ValueError(f"give one of {name} per rule, or none")
+        bad = set(self.credits) - set(CREDITS) - {OWN_PROGRAM}
+        if bad:
+            raise ValueError(f"unknown credit {sorted(bad)}; available: {', '.join(CREDITS)}")
+        if list(self.budgets) != sorted(set(self.budgets)) or self.budgets[0] < 1:
+            raise ValueError(f"budgets must be increasing positive label counts: {self.budgets}")
+        if self.needs_world_model and self.world_model is None:
+            raise ValueError("a rule with attention or positional credit needs a world model")
+        if self.needs_bisim and not self.reward.next_embedding_head:
+            raise ValueError("the bisim rule needs RewardConfig(next_embedding_head=True)")
+
+    @property
+    def shared_rules(self) -> list[int]:
+        """Indices of the rules that share the main program (all but OWN_PROGRAM ones)."""
+        return [i for i, c in enumerate(self.credits) if c != OWN_PROGRAM]
+
+    @property
+    def needs_bisim(self) -> bool:
+        return "bisimulation" in self.credits
+
+    @property
+    def needs_unlabelled(self) -> bool:
+        return any(self.unlabelled)
+
+    @property
+    def needs_world_model(self) -> bool:
+        return bool(set(WORLD_MODEL_CREDITS) & set(self.credits))
+
+    def rounds(self) -> list[tuple[int, int | None]]:
+        """(queries, budget reached after it or None) of every round, round by round."""
+        out, labels = [], 0
+        for budget in self.budgets:
+            while labels < budget:
+                n = min(self.queries_per_round, budget - labels)
+                labels += n
+                out.append((n, budget if labels == budget else None))
+        return out
+
+
+@struct.dataclass
+class GivenLabels:
+    """Labels given beforehand instead of the teacher's (a person's: `hprior label
+    --from-lab`): pairs of the training episodes at `pair_index` [N, 4] (episode, start of
+    each segment), B-Pref labels [N] (0 first, 1 second, -1 equal) and `valid` [N] (False:
+    can't tell). Every cell trains once on all of them (one-shot)."""
+
+    pair_index: np.ndarray
+    labels: np.ndarray
+    valid: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+@struct.dataclass
+class RuleArgs:
+    """What tells one rule from another inside the program (arrays, vmapped over rules):
+    its credit (an index into CREDITS), λ of the prior term, whether its targets are clipped,
+    their form's shift c (prior.loss.prior_targets: 0 raw), the weight of the bisimulation
+    term and whether its prior also fits unlabelled segments."""
+
+    credit: jax.Array
+    lam: jax.Array
+    clip: jax.Array
+    shift: jax.Array
+    bisim_lam: jax.Array
+    unlabelled: jax.Array
+
+
+@struct.dataclass
+class Episodes:
+    """obs[E, L, ds], act[E, L, da], reward[E, L] (true rewards: the teacher's and the
+    oracle credit's only)."""
+
+    obs: jax.Array
+    act: jax.Array
+    reward: jax.Array
