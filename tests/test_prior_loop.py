@@ -203,7 +203,7 @@ def test_prior_config_errors(tmp_path):
     cfg = presets.train_preset("cheetah_run", "prior", "paper")
     assert cfg.prior.lam == 5.0 and cfg.prior.wm_layers == 10 and cfg.prior.wm_every == 2000
     assert cfg.prior.wm_order == "joint"  # the appendix's pre-training; TWM's is a flag
-    from hprior_jax.cli import _parse_config
+    from hprior_jax.commands.train import parse_config as _parse_config
 
     assert _parse_config(cfg, ["--prior.wm-order", "observation_first"]
                          ).prior.wm_order == "observation_first"

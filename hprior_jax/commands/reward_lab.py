@@ -1,0 +1,133 @@
+"""`hprior reward-lab`: reward learning on a fixed dataset, every rule from the same labels."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from hprior_jax.methods import registry
+
+
+def reward_lab(argv: list[str]) -> int:
+    from hprior_jax.lab import dataset as datasets
+    from hprior_jax.lab.sweep import default_rules, rules
+
+    parser = _parser(datasets, default_rules(), rules())
+    args = parser.parse_args(argv)
+    from hprior_jax.lab.contrasts import Contrast
+    from hprior_jax.lab.sweep import lab_config, run_lab
+
+    try:
+        contrasts = [Contrast.parse(c) for c in args.contrasts]
+    except ValueError as e:
+        parser.error(f"--contrasts: {e}")
+    from hprior_jax.setup_jax import enable_compilation_cache
+
+    enable_compilation_cache()
+    given = None
+    if args.labels:
+        from hprior_jax.lab.human_labels import given_labels
+
+        path, given, unanswered = given_labels(Path(args.labels))
+        data = datasets.Dataset.load(path)
+        if data.task != args.task:
+            parser.error(f"--labels {args.labels} are of {data.task}, not --task {args.task}")
+        if unanswered:
+            print(f"{unanswered} queries of {args.labels} are not answered: training on the "
+                  f"{len(given)} that are", file=sys.stderr)
+        args.budgets, args.one_shot = [len(given)], True
+    elif args.dataset_from_run:
+        data = datasets.from_run(args.dataset_from_run, args.dataset_seed)
+        if data.task != args.task:
+            parser.error(f"--dataset-from-run {args.dataset_from_run} is a {data.task} run, "
+                         f"not --task {args.task}")
+        info = data.info
+        path = data.save(datasets.dataset_path(data.task, info["seed"], info["steps"],
+                                               info["preset"]))
+    else:
+        data, path = datasets.load_or_build(args.task, args.dataset_seed or 0,
+                                            args.dataset_steps, args.preset,
+                                            physics=args.physics)
+    print(f"dataset {path}: {data.info}", flush=True)
+    if args.dataset_only:
+        return 0
+    if args.seeds < 10:
+        print(f"warning: {args.seeds} seeds; the lab's comparisons want 10 or more",
+              file=sys.stderr)
+    cfg = lab_config(data, args.preset, args.rules, args.seeds, args.budgets,
+                     args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam,
+                     args.prior_set, args.tag)
+    out = args.out or f"runs/reward_lab/{args.task}"
+    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given,
+                   reuse_world_models=not args.no_world_model_cache, contrasts=contrasts)
+    if info["world_model_cache"]:
+        cache = info["world_model_cache"]
+        print(f"world models {'loaded from' if cache['loaded'] else 'kept in'} {cache['path']}")
+    print(f"{info['wall_seconds']} s, peak RSS {info['peak_rss_gib']} GiB; report in {out}")
+    return 0
+
+
+def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hprior reward-lab",
+        description="Reward learning decoupled from RL: every rule trains reward models from "
+                    "the same kind of labels on a fixed dataset of the task (built once by a "
+                    "SAC run on the true reward, cached in $HPRIOR_LAB_CACHE), seeds and rules "
+                    "vmapped in one program; reports held-out accuracy and correlation with the "
+                    "true reward, with CIs and paired tests against "
+                    f"{registry.LAB_REFERENCE}.")
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--preset", default="reduced", choices=("paper", "reduced", "smoke"),
+                        help="the RL preset whose reward, schedule and world-model settings "
+                             "the lab uses (and the dataset's SAC)")
+    parser.add_argument("--dataset-steps", type=int, default=datasets.DEFAULT_STEPS)
+    parser.add_argument("--dataset-seed", type=int, default=None,
+                        help="default 0 (with --dataset-from-run: the run's first seed)")
+    parser.add_argument("--dataset-from-run", default=None, metavar="RUN",
+                        help="make the dataset from this finished `hprior train --algo "
+                             f"{registry.REFERENCE}` run's replay buffer instead of a new run "
+                             "(cached under the run's seed, steps and preset)")
+    parser.add_argument("--dataset-only", action="store_true", help="build the dataset, stop")
+    parser.add_argument("--physics", action="store_true",
+                        help="the dataset also keeps the physics state of every training step "
+                             "(a person can label its pairs: `hprior label --from-lab`)")
+    parser.add_argument("--labels", default=None, metavar="DIR",
+                        help="train every rule once on a person's answers in this query folder "
+                             "(`hprior label --from-lab`) instead of the teacher's labels; "
+                             "the dataset is the one the folder names")
+    parser.add_argument("--rules", nargs="+", default=None,
+                        help=f"default: {' '.join(default_rules)}; also PRIOR's ablations "
+                             f"({' '.join(r for r in all_rules if r not in default_rules)}); "
+                             "RULE@LAMBDA gives a rule its own λ (prior@1 prior@25: a λ "
+                             "sweep in one program); RULE~shift the shifted target form "
+                             "α·(R̂ + T) − 1 (oracle~shift, prior~shift)")
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--budgets", nargs="+", type=int, default=[25, 100, 400])
+    parser.add_argument("--queries-per-round", type=int, default=None,
+                        help="default: the preset's (10 DMC, 20 MetaWorld at reduced)")
+    parser.add_argument("--feed", default=None, choices=("uniform", "disagreement", "entropy"),
+                        help="query selection after the first (uniform) round")
+    parser.add_argument("--teacher", default="oracle", help="a B-Pref teacher preset")
+    parser.add_argument("--one-shot", action="store_true",
+                        help="train once on all of a budget's labels (uniform queries)")
+    parser.add_argument("--lam", type=float, default=None, help="λ (default: the preset's)")
+    parser.add_argument("--prior-set", nargs="+", default=None, metavar="FIELD=VALUE",
+                        help="change the proposed method's settings for this lab, e.g. "
+                             "wm_layers=2 or wm_update_steps=500 (a world-model ablation); "
+                             "the rules that read the world model are then reported as "
+                             "RULE[TAG]")
+    parser.add_argument("--tag", default=None,
+                        help="TAG of --prior-set (default: the settings); merge the reports "
+                             "of several labs with `python -m hprior_jax.lab.report "
+                             "A/results.csv B/results.csv OUT`")
+    parser.add_argument("--no-world-model-cache", action="store_true",
+                        help="train the seeds' world models even when a lab of the same "
+                             "dataset, seeds and world-model settings left them in "
+                             "$HPRIOR_LAB_CACHE/world_models (and do not keep them)")
+    parser.add_argument("--contrasts", nargs="+", default=(), metavar="A:B[@MARGIN]",
+                        help="pre-registered contrasts A − B, reported first with Holm's "
+                             "correction (MARGIN: a number or C:D/K, adds a TOST equivalence "
+                             "test), e.g. oracle~shift:rvar "
+                             "prior~shift:positional~shift@oracle~shift:rvar/2")
+    parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
+    return parser
