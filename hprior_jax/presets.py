@@ -9,21 +9,17 @@ from __future__ import annotations
 
 import dataclasses
 
+from hprior_jax import task_table
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import PRESETS, RunConfig, config_class
 from hprior_jax.envs import task_info
 from hprior_jax.methods import registry
 
-# appendix Table 2: SAC learning rate per task (MetaWorld: 3e-4)
-SAC_LR = {"cheetah_run": 1e-3, "walker_walk": 5e-4, "quadruped_walk": 1e-4}
-METAWORLD_LR = 3e-4
-# appendix Table 2: 500k steps, 1M for quadruped and sweep into
-PAPER_STEPS = {"quadruped_walk": 1_000_000, "sweep_into": 1_000_000}
 
 
 def sac_config(task: str, preset: str) -> SACConfig:
     dmc = task_info(task).domain == "dm_control"
-    lr = SAC_LR.get(task, METAWORLD_LR)
+    lr = task_table.values(task).sac_lr
     if preset == "paper":
         return SACConfig(hidden_dim=1024 if dmc else 256, hidden_depth=2 if dmc else 3,
                          batch_size=512 if dmc else 1024, lr=lr)
@@ -45,7 +41,7 @@ def train_preset(task: str, algo: str = registry.DEFAULT, preset: str = "paper",
     episode = task_info(task).episode_length
     sac = sac_config(task, preset)
     if preset == "paper":
-        cfg = dict(steps=PAPER_STEPS.get(task, 500_000), num_seed_steps=5000, eval_every=10_000,
+        cfg = dict(steps=task_table.values(task).paper_steps, num_seed_steps=5000, eval_every=10_000,
                    num_eval_episodes=10, checkpoint_every=50_000, chunk_steps=episode)
     elif preset == "reduced":
         # sized so 5 vmapped seeds finish within an hour per (task, algorithm) on 2 CPU cores

@@ -13,7 +13,7 @@ from hprior_jax.agents.sac import SAC, Batch, SACConfig
 from hprior_jax.buffers import preferences
 from hprior_jax.runs.build import build_engine
 from hprior_jax.methods.mrn import recent_pairs
-from hprior_jax.methods.pebble import PebbleState
+from hprior_jax.methods.pebble_family import PebbleState
 from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble, mean_reward
 from hprior_jax.pbrl import meta_reward
 

@@ -10,7 +10,7 @@ from hprior_jax.loop import host
 from hprior_jax.runs.build import build_engine, train
 from hprior_jax.runs.run_dir import prepare_run_dir
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.methods.pebble import PebbleConfig
+from hprior_jax.methods.pebble_family import PebbleConfig
 from tests.assertions import assert_buffer_holds_learned_reward
 
 SMALL = dict(sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8), num_eval_episodes=2)

@@ -19,8 +19,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, PebbleState,
-                                       pebble_preset, reward_config)
+from hprior_jax.methods.pebble import Pebble
+from hprior_jax.methods.pebble_family import (Extension, PebbleConfig, PebbleState, pebble_preset,
+                                             reward_config)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.pbrl.bisim import bisim_term, sample_transitions
 

@@ -30,7 +30,8 @@ import numpy as np
 from hprior_jax.buffers import replay
 from hprior_jax.envs import task_info
 from hprior_jax.methods.base import Phase
-from hprior_jax.methods.pebble import Pebble, PebbleConfig, PebbleState, pebble_preset
+from hprior_jax.methods.pebble import Pebble
+from hprior_jax.methods.pebble_family import PebbleConfig, PebbleState, pebble_preset
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.pbrl.meta_reward import bilevel_update
 from hprior_jax.pbrl.relabel import relabel_rewards

@@ -30,10 +30,11 @@ import numpy as np
 from flax import struct
 
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.envs import task_info
+from hprior_jax import task_table
 from hprior_jax.loop.state import RunState
-from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, PebbleState, pebble_preset,
-                                      reward_config)
+from hprior_jax.methods.pebble import Pebble
+from hprior_jax.methods.pebble_family import (Extension, PebbleConfig, PebbleState, pebble_preset,
+                                             reward_config)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import pair_credit, segment_credit
@@ -42,7 +43,6 @@ from hprior_jax.prior.loss import TARGETS, PairCredit, prior_term, target_shift,
 from hprior_jax.prior.unlabelled import replay_segments, rows_of_pool, unlabelled_prior_term
 from hprior_jax.prior.world_model import DropoutRng, WorldModelConfig
 
-LAMBDA = {"dm_control": 5.0, "metaworld": 1000.0}  # appendix Table 4
 DIAGNOSTIC_SEGMENTS = 64  # replay segments the world-model diagnostics are measured on
 DIAGNOSTICS_STREAM = 0x6469  # folded off the world model's key: its training draws are unchanged
 
@@ -289,7 +289,7 @@ def prior_preset(task: str, preset: str, sac: SACConfig) -> dict:
     model's size per preset."""
     sizes = {"paper": {}, "reduced": REDUCED_WORLD_MODEL, "smoke": SMOKE_WORLD_MODEL}[preset]
     return {**pebble_preset(task, preset, sac),
-            "prior": PriorConfig(lam=LAMBDA[task_info(task).domain], **sizes)}
+            "prior": PriorConfig(lam=task_table.values(task).prior_lambda, **sizes)}
 
 
 _VARIANT = {"prior": "raw", "prior_nrp": "nrp"}

@@ -24,8 +24,8 @@ from typing import Literal
 import jax
 import jax.numpy as jnp
 
-from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, pebble_preset,
-                                       reward_config)
+from hprior_jax.methods.pebble import Pebble
+from hprior_jax.methods.pebble_family import Extension, PebbleConfig, pebble_preset, reward_config
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.networks.reward_ensemble import member_rewards
 

@@ -12,10 +12,10 @@ import jax.numpy as jnp
 from flax import struct
 
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.envs import task_info
-from hprior_jax.methods.pebble import (Extension, Pebble, PebbleConfig, PebbleState, pebble_preset,
-                                      reward_config)
-from hprior_jax.methods.prior import LAMBDA
+from hprior_jax import task_table
+from hprior_jax.methods.pebble import Pebble
+from hprior_jax.methods.pebble_family import (Extension, PebbleConfig, PebbleState, pebble_preset,
+                                             reward_config)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.prior.loss import TARGETS, PairCredit, prior_term, rvar_alpha, target_shift
 from hprior_jax.prior.unlabelled import replay_segments, rows_of_pool, unlabelled_prior_term
@@ -72,7 +72,7 @@ class UniformPrior(Extension):
 
 def rvar_preset(task: str, preset: str, sac: SACConfig) -> dict:
     return {**pebble_preset(task, preset, sac),
-            "rvar": RvarConfig(lam=LAMBDA[task_info(task).domain])}
+            "rvar": RvarConfig(lam=task_table.values(task).prior_lambda)}
 
 
 def spec(name: str) -> MethodSpec:

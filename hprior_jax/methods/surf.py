@@ -28,8 +28,9 @@ from flax import struct
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.buffers import preferences
 from hprior_jax.envs import task_info
-from hprior_jax.methods.pebble import (EpisodeWindow, Extension, Pebble, PebbleConfig,
-                                       PebbleState, pebble_preset)
+from hprior_jax.methods.pebble import Pebble
+from hprior_jax.methods.pebble_family import (EpisodeWindow, Extension, PebbleConfig, PebbleState,
+                                             pebble_preset)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.networks.reward_ensemble import init_reward_ensemble
 from hprior_jax.pbrl.preference import make_optimizer
