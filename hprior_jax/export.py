@@ -17,14 +17,16 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from hprior_jax.agents.sac import SAC, SACConfig
+from hprior_jax.networks.reward_ensemble import RewardConfig, mean_reward
+from hprior_jax.runs.restore import restore_run
+from hprior_jax.runs.run_dir import check_out_dir, run_info_of
+
 FORMAT = 1
 
 
 def export_seed(run_dir: Path, out: Path, seed: int | None = None,
                 step: int | None = None) -> Path:
-    from hprior_jax.runs.restore import restore_run
-    from hprior_jax.runs.run_dir import check_out_dir, run_info_of
-
     out = check_out_dir(Path(out))
     restored = restore_run(run_dir, step)
     cfg, engine = restored.cfg, restored.engine
@@ -61,8 +63,6 @@ def _read(path: Path) -> tuple[dict, dict]:
 def load_reward(path: Path):
     """The exported reward model as a pure function `(obs[..., obs], action[..., act]) ->
     r̂[...]`: the mean over the ensemble's members, the reward RL was trained on."""
-    from hprior_jax.networks.reward_ensemble import RewardConfig, mean_reward
-
     meta, params = _read(path)
     if meta["reward_config"] is None:
         raise ValueError(f"{path} is an export of a --algo {meta['algo']} run, which learns "
@@ -80,8 +80,6 @@ def load_reward(path: Path):
 def load_policy(path: Path):
     """The exported policy as a pure function `obs[..., obs] -> action[..., act]` (the
     deterministic action, tanh of the mean, as evaluation uses)."""
-    from hprior_jax.agents.sac import SAC, SACConfig
-
     meta, params = _read(path)
     sac = SAC(meta["obs_size"], meta["action_size"], SACConfig(**meta["agent_config"]))
     actor = params["actor"]

@@ -4,13 +4,9 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-from matplotlib.figure import Figure  # noqa: E402
-import numpy as np  # noqa: E402
-
-from hprior_jax.run_log import read_eval_rows  # noqa: E402
+from hprior_jax.run_log import read_eval_rows
 
 
 def read_eval_csv(path: Path, column: str = "true_return"):
@@ -30,6 +26,8 @@ def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "") -> Path:
     if read_eval_csv(eval_csv, "success"):
         panels.insert(0, ("success", "evaluation success rate"))
     # a Figure of its own, not pyplot's global state: the grid writes curves from threads
+    from matplotlib.figure import Figure  # ~1 s to import: only when a curve is drawn
+
     fig = Figure(figsize=(6 * len(panels), 4))
     axes = fig.subplots(1, len(panels), squeeze=False)
     for ax, (column, ylabel) in zip(axes[0], panels):

@@ -14,7 +14,7 @@ from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import PRESETS, RunConfig, config_class
 from hprior_jax.envs import task_info
 from hprior_jax.methods import registry
-
+from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
 
 
 def sac_config(task: str, preset: str) -> SACConfig:
@@ -73,8 +73,6 @@ def with_eval_budget(cfg: RunConfig, name: str) -> RunConfig:
 
 def with_teacher(cfg: RunConfig, name: str) -> RunConfig:
     """`cfg` with a B-Pref teacher preset (oracle, noisy, mistake, skip, myopic, equal)."""
-    from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
-
     section = next((f.name for f in dataclasses.fields(cfg)
                     if hasattr(getattr(cfg, f.name), "teacher")), None)
     if section is None:

@@ -30,15 +30,12 @@ def grid(argv: list[str]) -> int:
     parser.add_argument("--eval-budget", default="paper", choices=("paper", "cpu"),
                         help="cpu: 5 evaluation episodes every 10k steps (see README)")
     parser.add_argument("--contacts", default="floor", choices=("floor", "all"),
-                        help="DM Control physics, as `hprior train --contacts`; grids run "
-                             "before 2026-12-02 were run with `all`")
+                        help="DM Control physics, as `hprior train --contacts`")
     parser.add_argument("--contact-cap", default="task", choices=("task", "none"),
                         help="MJX contact cap of the DM Control and MetaWorld ports, as "
-                             "`hprior train --contact-cap`; grids run before 2026-12-04 were "
-                             "run with `none`")
+                             "`hprior train --contact-cap`")
     parser.add_argument("--hand", default="arm", choices=("arm", "free"),
-                        help="MetaWorld scene, as `hprior train --hand`; grids run before "
-                             "this option were run with `free`")
+                        help="MetaWorld scene, as `hprior train --hand`")
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--devices", type=int, default=None,
                         help="devices to use (default: all); runs train side by side, each "

@@ -10,8 +10,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from hprior_jax.methods import registry
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import _QUERY_OFFSET, credit_from_attention
+from hprior_jax.runs.restore import restore_run
+from hprior_jax.runs.run_dir import load_run_config
 
 
 def final_step_attention(params: wm.WorldModelParams, obs: jax.Array, act: jax.Array,
@@ -68,10 +71,6 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
                            out: Path | None = None) -> list[Path]:
     """Restores the latest checkpoint of a run with a world model (PRIOR, PRIOR-NRP) and draws both segments of stored
     preference pair `pair` for `seed` (default: the run's first). Returns the PNG paths."""
-    from hprior_jax.runs.restore import restore_run
-    from hprior_jax.runs.run_dir import load_run_config
-    from hprior_jax.methods import registry
-
     run_dir = Path(run_dir)
     cfg = load_run_config(run_dir)
     if not registry.get(cfg.algo).has_world_model:

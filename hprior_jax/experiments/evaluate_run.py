@@ -9,6 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hprior_jax.loop.engine import eval_key
+from hprior_jax.render import render_frames, write_video
+from hprior_jax.runs.restore import restore_run
+
 
 def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
                  video: bool = False) -> tuple[list[dict], list[Path]]:
@@ -17,8 +21,6 @@ def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
 
     The episodes use the evaluation keys of the run at that step, so with the run's own
     episode count they are the episodes of its eval.csv row at that step."""
-    from hprior_jax.runs.restore import restore_run
-
     if episodes < 1:
         raise ValueError(f"--episodes must be positive, got {episodes}")
     run_dir = Path(run_dir)
@@ -71,9 +73,6 @@ def episode_states(engine, actor_params, keys: jax.Array,
 
 
 def _video(engine, actor_params, seed: int, step: int, run_dir: Path) -> Path:
-    from hprior_jax.render import render_frames, write_video
-
-    from hprior_jax.loop.engine import eval_key
 
     key = eval_key(seed, step)
     states = jax.tree.map(lambda x: x[0], episode_states(engine, actor_params, key[None]))

@@ -14,8 +14,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from hprior_jax import dir_lock, envs, presets
+from hprior_jax.checkpoint import Checkpointer
 from hprior_jax.config import RunConfig, differing_fields
+from hprior_jax.loop import devices as seed_devices
+from hprior_jax.loop import host
 from hprior_jax.methods import registry
+from hprior_jax.runs import build
+from hprior_jax.runs.build import build_engine
+from hprior_jax.runs.run_dir import load_run_config, prepare_run_dir
 
 PAPER_SEEDS = (12345, 23456, 34567, 45678, 56789)  # appendix E
 
@@ -34,8 +41,6 @@ class GridRun:
 
 def run_config(root: Path, task: str, algo: str, seeds, budget: str,
                overrides: dict) -> RunConfig:
-    from hprior_jax import envs, presets
-
     out = str(Path(root) / task / algo)
     # a physics option applies to the tasks of its domain only (grids mix DMC and MetaWorld)
     domain = envs.task_info(task).domain
@@ -49,8 +54,6 @@ def run_status(cfg: RunConfig) -> str:
 
     A directory holding a run of another configuration is an error: mixing budgets or
     seeds in one table would be silent nonsense."""
-    from hprior_jax.runs.run_dir import load_run_config
-
     run_dir = Path(cfg.out)
     if not run_dir.exists() or not any(run_dir.iterdir()):
         return "new"
@@ -69,8 +72,6 @@ def run_status(cfg: RunConfig) -> str:
 
 def latest_checkpoint_step(run_dir: Path) -> int | None:
     """The step of `run_dir`'s last checkpoint (None: none yet)."""
-    from hprior_jax.checkpoint import Checkpointer
-
     if not (Path(run_dir) / "checkpoints").exists():
         return None
     ckpt = Checkpointer(Path(run_dir) / "checkpoints")
@@ -115,8 +116,6 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
     packed longest first onto the least loaded group; otherwise they keep the plan's order.
     `train_fn(cfg, run_dir, resume)` replaces training (tests pass a recorder). A second
     grid on the same `root` is refused (dir_lock.DirInUse)."""
-    from hprior_jax import dir_lock
-
     root = Path(root)
     runs = plan(root, tasks, algos, seeds, budget, overrides)
     root.mkdir(parents=True, exist_ok=True)
@@ -128,9 +127,6 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
 def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress, train_fn,
               devices, estimate) -> list[GridRun]:
     import jax
-
-    from hprior_jax.loop import devices as seed_devices, host
-    from hprior_jax.runs import build
 
     spec = dict(tasks=list(tasks), algos=list(algos), seeds=list(seeds), budget=budget,
                 overrides=overrides or {}, written=time.strftime("%Y-%m-%d %H:%M:%S"))
@@ -192,8 +188,6 @@ def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress
 
 
 def _train_one(r: GridRun, runs, seeds, train) -> None:
-    from hprior_jax.runs.run_dir import prepare_run_dir
-
     head = (f"[{runs.index(r) + 1}/{len(runs)}] {r.task} {r.algo} "
             f"(seeds {', '.join(map(str, seeds))})")
     print(f"{head}: {'resuming' if r.status == 'interrupted' else 'starting'} "
@@ -224,8 +218,6 @@ def calibrate(cfg: RunConfig, devices) -> float:
     its last checkpoint. Compile time is not counted (the programs compiled here are in the
     persistent cache when the run starts)."""
     import jax
-
-    from hprior_jax.runs.build import build_engine
 
     engine = build_engine(cfg, devices)
     seeds = list(cfg.seeds)

@@ -6,16 +6,16 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from hprior_jax.experiments.evaluate_run import episode_states
+from hprior_jax.labelling.store import write_queries
+from hprior_jax.runs.restore import restore_run
+
 
 def queries_from_run(run_dir: Path, out: Path, pairs: int = 10, segment_len: int = 50,
                      seed: int | None = None, round_: int = 1, sample: bool = True) -> list[str]:
     """Writes `pairs` queries into the query folder `out`: each pair two segments of
     `segment_len` steps from two episodes of seed `seed`'s policy (sampling actions unless
     `sample` is False), at independent random starts. Returns the query ids."""
-    from hprior_jax.experiments.evaluate_run import episode_states
-    from hprior_jax.labelling.store import write_queries
-    from hprior_jax.runs.restore import restore_run
-
     if pairs < 1:
         raise ValueError(f"--pairs must be positive, got {pairs}")
     restored = restore_run(run_dir)

@@ -12,11 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from hprior_jax.experiments.attention_map import attention_maps_for_run
 from hprior_jax.experiments.scores import task_scores
-from hprior_jax.statistics import paired_t_test
 from hprior_jax.methods import registry
 from hprior_jax.plotting import read_eval_csv
 from hprior_jax.run_log import read_jsonl
+from hprior_jax.statistics import paired_t_test
 
 REFERENCE = registry.REFERENCE  # every score is normalised by it
 METHOD = registry.PROPOSED  # the t-tests compare every other method with it
@@ -276,8 +277,6 @@ def make_report(root: Path, out: Path | None = None, how: str = "mean-of-ratios"
 
 
 def _attention_section(runs, out: Path) -> list[str]:
-    from hprior_jax.experiments.attention_map import attention_maps_for_run
-
     lines = ["### World-model attention (appendix Figure 8 style; first labelled pair)", ""]
     for task, by_algo in sorted(runs.items()):
         for algo in _order(by_algo):

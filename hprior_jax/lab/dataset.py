@@ -23,7 +23,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from hprior_jax import presets
 from hprior_jax.envs import task_info
+from hprior_jax.methods import registry
+from hprior_jax.runs.build import build_engine, train
+from hprior_jax.runs.restore import restore_run
+from hprior_jax.runs.run_dir import load_run_config
 
 DEFAULT_STEPS = 50_000  # the reduced RL run's length: PbRL there sees a buffer like this one
 HELDOUT_PAIRS = 2000
@@ -137,10 +142,6 @@ def build(task: str, seed: int = 0, steps: int = DEFAULT_STEPS, preset: str = "r
     buffer into a Dataset with the preset's query segment length. Takes minutes: one SAC run
     of `steps` steps. `physics`: keep the training steps' physics states too (the same
     run: recording them changes no number)."""
-    from hprior_jax import presets
-    from hprior_jax.runs.build import build_engine, train
-    from hprior_jax.methods import registry
-
     length = task_info(task).episode_length
     _check_steps(steps, length, heldout_every)  # before the SAC run
     t0 = time.perf_counter()
@@ -161,10 +162,6 @@ def from_run(run_dir: Path, seed: int | None = None, heldout_every: int = 3,
     replay buffer (one seed, default the run's first), as `build` would keep it. Saves the
     SAC run that `build` would repeat; the file it is saved under names the run's seed,
     checkpoint step and preset."""
-    from hprior_jax.runs.restore import restore_run
-    from hprior_jax.runs.run_dir import load_run_config
-    from hprior_jax.methods import registry
-
     t0 = time.perf_counter()
     algo = load_run_config(Path(run_dir)).algo
     if algo != registry.REFERENCE:  # checked before the checkpoint is read
@@ -188,9 +185,6 @@ def _check_steps(steps: int, length: int, heldout_every: int) -> None:
 def _from_replay(task: str, replay, steps: int, seed: int, preset: str, source: str,
                  t0: float, heldout_every: int, num_pairs: int) -> Dataset:
     """One seed's replay buffer (rows in step order, never wrapped) -> Dataset."""
-    from hprior_jax import presets
-    from hprior_jax.methods import registry
-
     length = task_info(task).episode_length
     segment_len = presets.train_preset(task, registry.LAB_REFERENCE, preset).pebble.segment_len
     _check_steps(steps, length, heldout_every)

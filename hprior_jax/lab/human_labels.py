@@ -12,6 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+import tasks
+from hprior_jax.lab.config import GivenLabels
+from hprior_jax.lab.dataset import Dataset, random_pairs
+from hprior_jax.labelling.store import QueryFolder, write_queries
+
 LAB_PAIRS = "lab_pairs.json"
 
 
@@ -19,10 +24,6 @@ def queries_from_lab(dataset: Path, out: Path, pairs: int = 50, seed: int = 0) -
     """Writes `pairs` uniform pairs of the dataset's training episodes (segments of the
     dataset's length, independent episodes and starts drawn with `seed`) into the query
     folder `out`. Returns the query ids."""
-    import tasks
-    from hprior_jax.lab.dataset import Dataset, random_pairs
-    from hprior_jax.labelling.store import write_queries
-
     if pairs < 1:
         raise ValueError(f"--pairs must be positive, got {pairs}")
     dataset = Path(dataset).absolute()
@@ -51,9 +52,6 @@ def queries_from_lab(dataset: Path, out: Path, pairs: int = 50, seed: int = 0) -
 def given_labels(folder: Path):
     """(the dataset's path, `GivenLabels` of the answered queries of `folder`, how many were
     left unanswered)."""
-    from hprior_jax.lab.config import GivenLabels
-    from hprior_jax.labelling.store import QueryFolder
-
     path = Path(folder) / LAB_PAIRS
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: {folder} was not written by "

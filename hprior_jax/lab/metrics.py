@@ -99,3 +99,13 @@ def uniform_credit_ceiling(true: np.ndarray, segment_len: int) -> dict[str, floa
     moving mean, the smoothest reward that segment returns pin down."""
     smooth = moving_mean(true, segment_len)
     return {"pearson": _pearson(smooth, true), "episode_pearson": episode_pearson(smooth, true)}
+
+
+METRIC_LABEL = {
+    "heldout_accuracy": "held-out preference accuracy",
+    "pearson": "Pearson r with the true reward",
+    "spearman": "Spearman rank correlation with the true reward",
+    "kendall_tau": "Kendall tau with the true reward",
+    "episode_pearson": "within-episode Pearson r with the true reward",
+    "segment_rank": "within-segment rank agreement with the true reward",
+}

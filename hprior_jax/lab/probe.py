@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hprior_jax.lab.sweep import with_settings
+from hprior_jax.methods.prior import REDUCED_WORLD_MODEL, PriorConfig
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import segment_credit
 
@@ -77,9 +79,6 @@ def probe_episodes(key: jax.Array, n: int, cfg: ProbeConfig):
 def world_model_config(segment_len: int, settings=()) -> wm.WorldModelConfig:
     """The reduced preset's world model (hprior_jax.methods.prior.REDUCED_WORLD_MODEL), with
     `settings` (FIELD=VALUE of PriorConfig, e.g. wm_layers=4, wm_lr=0.001)."""
-    from hprior_jax.lab.sweep import with_settings
-    from hprior_jax.methods.prior import REDUCED_WORLD_MODEL, PriorConfig
-
     sizes = {k: v for k, v in REDUCED_WORLD_MODEL.items() if not k.endswith("_steps")}
     prior = with_settings(PriorConfig(**sizes), list(settings))
     return prior.world_model(OBS_SIZE, ACT_SIZE, segment_len)

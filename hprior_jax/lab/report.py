@@ -28,25 +28,14 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from hprior_jax.lab import contrasts as contrast_tests
+from hprior_jax.lab.metrics import METRIC_LABEL, METRICS
+from hprior_jax.lab.report_figures import plot_metric, png_name
+from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE
+from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison
 
-from hprior_jax.lab import contrasts as contrast_tests  # noqa: E402
-from hprior_jax.lab.metrics import METRICS  # noqa: E402
-from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE  # noqa: E402
-from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison  # noqa: E402
-
-METRIC_LABEL = {
-    "heldout_accuracy": "held-out preference accuracy",
-    "pearson": "Pearson r with the true reward",
-    "spearman": "Spearman rank correlation with the true reward",
-    "kendall_tau": "Kendall tau with the true reward",
-    "episode_pearson": "within-episode Pearson r with the true reward",
-    "segment_rank": "within-segment rank agreement with the true reward",
-}
 DEFAULT_TITLE = "Reward-learning lab"
 
 
@@ -150,35 +139,6 @@ def merge_results(paths, tags=None) -> tuple[list[dict], int]:
                      for m in METRICS if m in row):
                 differing += 1
     return list(kept.values()), differing
-
-
-def png_name(task: str, metric: str) -> str:
-    return f"{task}_{metric}.png"
-
-
-def plot_metric(entries: list[dict], out_png: Path, title: str) -> Path:
-    """Mean over seeds against the label budget, one line per rule, its 95% CI shaded."""
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for rule in dict.fromkeys(e["rule"] for e in entries):
-        points = [e for e in entries if e["rule"] == rule]  # budget-sorted by summarize
-        budgets = [e["budget"] for e in points]
-        (line,) = ax.plot(budgets, [e["mean"] for e in points], marker="o", label=rule)
-        ax.fill_between(budgets, [e["ci_lo"] for e in points], [e["ci_hi"] for e in points],
-                        color=line.get_color(), alpha=0.2)
-    budgets = sorted({e["budget"] for e in entries})
-    if budgets[0] > 0 and budgets[-1] > 4 * budgets[0]:
-        ax.set_xscale("log")
-        ax.minorticks_off()
-    ax.set_xticks(budgets, [str(b) for b in budgets])  # ticks at the budgets that were run
-    ax.set_xlabel("preference labels")
-    ax.set_ylabel(METRIC_LABEL[entries[0]["metric"]])
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out_png, dpi=120)
-    plt.close(fig)
-    return out_png
 
 
 def _comparison_of(entry: dict) -> dict:

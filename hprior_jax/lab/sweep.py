@@ -15,13 +15,22 @@ from pathlib import Path
 
 import numpy as np
 
+from hprior_jax import presets
 from hprior_jax.lab import seed_world_model
+from hprior_jax.lab.config import (
+    ABLATIONS,
+    CONTROLS,
+    NO_PRIOR,
+    OWN_PROGRAM,
+    UNLABELLED_SEGMENTS,
+    WORLD_MODEL_CREDITS,
+    GivenLabels,
+    LabConfig,
+)
 from hprior_jax.lab.dataset import Dataset
-from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM,
-                                   UNLABELLED_SEGMENTS, WORLD_MODEL_CREDITS, GivenLabels,
-                                   LabConfig)
 from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
+from hprior_jax.lab.report import write_report
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
@@ -93,8 +102,6 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     proposed method's config (world-model size, training amount, ...); the rules that read the
     world model are then reported as RULE[TAG] (TAG: `tag`, or the settings), so labs of
     several world models merge into one report (`lab.report` of several results.csv)."""
-    from hprior_jax import presets
-
     known = rules()
     rule_names = list(rule_names or default_rules())
     parsed = [parse_rule(r) for r in rule_names]
@@ -221,8 +228,6 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
     `reuse_world_models`: the seeds' world models come from the lab cache when a lab of the
     same dataset, seeds and world-model settings trained them (`world_model_cache`), and
     are kept there when trained here."""
-    from hprior_jax.lab.report import write_report
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

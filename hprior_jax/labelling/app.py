@@ -2,33 +2,34 @@
 and takes the answer by button or key; a JSON API under /api.
 
 Served by uvicorn on 127.0.0.1 unless told otherwise; on any other address every request
-needs the access token (the `token` query parameter or the X-Hprior-Token header)."""
-from __future__ import annotations
+needs the access token (the `token` query parameter or the X-Hprior-Token header).
 
+FastAPI is imported when an app is made, not with this module: a training run that may ask a
+person imports the labelling package without paying for the web framework. (No `from
+__future__ import annotations` here: FastAPI reads the request bodies' types at run time.)"""
 import secrets
-
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
-from pydantic import BaseModel
-from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from hprior_jax.labelling.clips import clip_path
 from hprior_jax.labelling.page import PAGE
 from hprior_jax.labelling.store import LabelError, QueryFolder
 
 
-class Answer(BaseModel):
-    id: str
-    answer: str
-    labeller: str
+def make_app(folder: QueryFolder, token: str | None = None):
+    """-> the FastAPI app serving `folder`."""
+    from fastapi import FastAPI, Request
+    from fastapi.exceptions import RequestValidationError
+    from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+    from pydantic import BaseModel
+    from starlette.exceptions import HTTPException as StarletteHTTPException
 
+    class Answer(BaseModel):
+        id: str
+        answer: str
+        labeller: str
 
-class Undo(BaseModel):
-    labeller: str
+    class Undo(BaseModel):
+        labeller: str
 
-
-def make_app(folder: QueryFolder, token: str | None = None) -> FastAPI:
     app = FastAPI(title="hprior label", docs_url=None, redoc_url=None, openapi_url=None)
 
     @app.middleware("http")

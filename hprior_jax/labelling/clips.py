@@ -9,15 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
+import tasks
 from hprior_jax.labelling.store import QueryFolder
+from hprior_jax.render import default_camera, hand_start, render_frames, write_video
 
 _render_lock = threading.Lock()  # one OpenGL context renders at a time
 
 
 @functools.cache
 def _mj_model(task: str):
-    import tasks
-
     return tasks.make(task).mj_model
 
 
@@ -27,8 +27,6 @@ def clip_path(folder: QueryFolder, qid: str, side: int) -> Path:
     path = folder.dir / "clips" / f"{qid}_{side}.mp4"
     if path.exists():
         return path
-    from hprior_jax.render import default_camera, hand_start, render_frames, write_video
-
     with _render_lock:
         if path.exists():  # rendered while this request waited
             return path

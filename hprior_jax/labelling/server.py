@@ -8,6 +8,7 @@ import threading
 import time
 from dataclasses import dataclass, replace
 
+from hprior_jax.labelling.app import make_app
 from hprior_jax.labelling.store import QueryFolder
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -33,8 +34,6 @@ class ServerOptions:
 
 
 def _app(folder: QueryFolder, options: ServerOptions):
-    from hprior_jax.labelling.app import make_app
-
     return make_app(folder, options.token)
 
 

@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from hprior_jax.labelling.clips import clip_path
 from hprior_jax.labelling.server import BackgroundServer, ServerOptions
 from hprior_jax.labelling.store import QueryFolder, pair_arrays, query_id, write_queries
 
@@ -116,8 +117,6 @@ class HumanTeacher:
         answered meanwhile and stops at `close`)."""
         if not hasattr(self.task, "mj_model"):
             return
-        from hprior_jax.labelling.clips import clip_path
-
         def render():
             for qid in ids:
                 if self._stop_rendering.is_set():

@@ -20,6 +20,7 @@ from hprior_jax.loop.engine import Engine
 from hprior_jax.loop.progress import ProgressBar, WallTimer, process_age
 from hprior_jax.loop.state import RunState
 from hprior_jax.loop.stopping import Interrupted, StopRequest, TrainingDiverged
+from hprior_jax.plotting import plot_learning_curve
 from hprior_jax.run_log import RunLog
 
 UNCHECKED = ("episode/", "perf/")  # metric groups that may legitimately be non-finite or are ours
@@ -63,8 +64,6 @@ def run(engine: Engine, run_dir: Path, resume: bool = False, progress: bool = Tr
     finally:
         loop.close()
     if loop.primary and (loop.run_dir / "eval.csv").exists():
-        from hprior_jax.plotting import plot_learning_curve  # matplotlib: ~1 s to import
-
         plot_learning_curve(loop.run_dir / "eval.csv", loop.run_dir / "learning_curve.png",
                             title=f"{engine.cfg.algo} on {engine.cfg.task}")
     return loop.rs

@@ -28,19 +28,37 @@ import jax.numpy as jnp
 import numpy as np
 
 from hprior_jax.buffers import preferences, replay
+from hprior_jax.loop.devices import fetch
 from hprior_jax.loop.state import RunState
-from hprior_jax.methods.base import (RANDOM, SAC_METRICS, SAC_PHASE, Method, Phase,
-                                     random_step, sac_step)
-from hprior_jax.methods.pebble_family import (EpisodeWindow, Extension, PebbleConfig,
-                                              PebbleState, pebble_preset, reward_config)
+from hprior_jax.methods.base import (
+    RANDOM,
+    SAC_METRICS,
+    SAC_PHASE,
+    Method,
+    Phase,
+    random_step,
+    sac_step,
+)
+from hprior_jax.methods.pebble_family import (
+    EpisodeWindow,
+    Extension,
+    PebbleConfig,
+    PebbleState,
+    pebble_preset,
+    reward_config,
+)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.networks.reward_ensemble import init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_reward
 from hprior_jax.pbrl.query import SegmentPairs, cut_segments, select_queries
 from hprior_jax.pbrl.relabel import relabel_rewards
 from hprior_jax.pbrl.state_entropy import init_running_mean_std, state_entropy_reward
-from hprior_jax.pbrl.teacher import (TeacherOutput, TeacherThresholds, compute_thresholds,
-                                     teacher_labels)
+from hprior_jax.pbrl.teacher import (
+    TeacherOutput,
+    TeacherThresholds,
+    compute_thresholds,
+    teacher_labels,
+)
 
 UNSUP = "unsup"
 RETURN_WINDOW = 10  # BPref: teacher thresholds from the mean return of the last 10 episodes
@@ -313,8 +331,6 @@ class Pebble(Method):
     def _human_round(self, rs: RunState, step: int, n: np.int32, first: bool):
         """Propose (compiled), ask the person (host, may wait for hours or stop the run),
         learn from the answers (compiled)."""
-        from hprior_jax.loop.devices import fetch
-
         suffix = "/first" if first else ""
         name, propose = self._round_program(first)
         pairs, shown = self.kit.compile(name, propose, rs, n)(rs, n)
