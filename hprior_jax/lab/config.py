@@ -1,5 +1,23 @@
-"""The lab's configuration and the data types its programs take: rules and their credit,
-labels given beforehand, the arguments that tell rules apart, fixed episodes."""
+"""The lab's configuration and the data types its programs take. A rule's credit α:
+
+  none           PEBBLE: cross-entropy only (λ = 0)
+  attention      PRIOR: the world model's attention credit (the RL loop's α)
+  attention_nrp  PRIOR-NRP: the same α min-max normalised and softmaxed (appendix eq. 9)
+  attention_no_own_step  ablation: attention α without the query's own (last) step
+  bisimulation   BISIM: no α (λ = 0); its bisimulation term instead (weight `bisim_lam`), on
+                 transitions drawn from the training episodes, as the RL loop draws them from
+                 the replay buffer
+  uniform        RVAR: 1/|σ|
+  positional     control: the mean attention α at each position, the same for every segment
+                 (what is left of α without state information)
+  oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
+                 bound for any credit rule; the only rule that reads true rewards)
+
+A rule may also take the shifted target form α_t·(R̂ + T·c) − c (`shifts`, RULE~shift), clip
+its targets, fit the prior on unlabelled segments too and have its own λ: ablations and a λ
+sweep run side by side as rules of one program. A method whose update has other shapes (SURF)
+runs in a program of its own (`OWN_PROGRAM`, its `MethodSpec.lab_rule`), same seeds.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

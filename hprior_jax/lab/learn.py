@@ -1,45 +1,15 @@
 """Reward learning on fixed data, every (seed, rule) cell in one compiled program (SURF in
-one of its own).
-
-A cell trains one reward ensemble the way the RL loop's feedback rounds do (queries from the
-training episodes, the first round uniform, then `feed_type`; the teacher; `train_reward` with
-its epochs and 0.97 early stop, on every stored pair), with CE + λ·L_prior where the rule
-decides the credit α of each stored pair:
-
-  none           PEBBLE: cross-entropy only (λ = 0)
-  attention      PRIOR: the world model's attention credit (the RL loop's α)
-  attention_nrp  PRIOR-NRP: the same α min-max normalised and softmaxed (appendix eq. 9)
-  attention_no_own_step  ablation: attention α without the query's own (last) step
-  bisimulation   BISIM: no α (λ = 0); its bisimulation term instead (weight `bisim_lam`), on
-                 transitions drawn from the training episodes, as the RL loop draws them from
-                 the replay buffer
-  uniform        RVAR: 1/|σ|
-  positional     control: the mean attention α at each position, the same for every segment
-                 (what is left of α without state information)
-  oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
-                 bound for any credit rule; the only rule that reads true rewards)
-
-A rule may also take the shifted target form α_t·(R̂ + T·c) − c instead of the paper's α_t·R̂
-(`shifts`, the rule named RULE~shift; prior/loss.py), clip its targets to the reward's range,
-fit the prior on unlabelled
-training segments too (`unlabelled`: prior/unlabelled.py) and have its own λ (`clips`,
-`rule_lams`): PRIOR's ablations and a λ sweep then run side by side, as rules of one program.
-A method whose update has other shapes (SURF: longer stored segments, an unlabelled pool)
-runs in a program of its own (`OWN_PROGRAM`, its `MethodSpec.lab_rule`), one cell per seed,
-with the same seeds' initial weights, on the same schedule; its rows join the others'.
+one of its own): a cell trains one reward ensemble the way the RL loop's feedback rounds do
+(`lab.rounds`), with CE + λ·L_prior where its rule decides the credit α (`lab.config`).
 
 Budgets are checkpoints of one run per cell: rounds of `queries_per_round`, clipped so the
-label count lands on every budget (for budgets 25 and 100 at 10 per round: 10, 10, 5, then 10
-... 10, 5); a separate run per budget would differ only in those round boundaries. The world
-model is trained once per seed on the training episodes, before any round, and is fixed
-after (the RL loop keeps training it; here the data does not change), so each pair's α is
-computed once, when the pair is stored.
-
-Cells are [seed, rule]: rules vmapped inside seeds, so the world model of a seed is shared by
-its rules, not copied; seeds vmapped too on accelerators, one after the other on CPU
-(`_over_cells`). All rules share the seed's random streams (initial reward weights, queries,
-minibatch order), so a paired comparison between rules of one seed removes that variance; with
-`feed_type="uniform"` every rule of a seed also gets exactly the same labels.
+label count lands on every budget (25 and 100 at 10 per round: 10, 10, 5, then 10 ... 10, 5).
+The world model is trained once per seed before any round and fixed after
+(`lab.seed_world_model`), so each pair's α is computed once, when the pair is stored.
+Cells are [seed, rule]: rules vmapped inside seeds (a seed's world model is shared, not
+copied); seeds vmapped on accelerators, one after the other on CPU (`_over_cells`). All rules
+share the seed's random streams (initial weights, queries, minibatch order), so a paired
+comparison between rules of one seed removes that variance.
 """
 from __future__ import annotations
 
