@@ -30,7 +30,7 @@ AHEAD_WHEN = ("after_first", "first_phase_apart", "at_start", "off")
 def run(engine: Engine, run_dir: Path, resume: bool = False, progress: bool = True,
         max_chunks: int | None = None, saved_capacity: int | None = None,
         interrupt: StopRequest | None = None, labelling=None,
-        compile_ahead: str = "after_first") -> RunState:
+        compile_ahead: str = "after_first", on_evaluation=None) -> RunState:
     """Trains `engine.cfg` into `run_dir` (made by `prepare_run_dir`, or an existing run to
     resume).
 
@@ -39,7 +39,9 @@ def run(engine: Engine, run_dir: Path, resume: bool = False, progress: bool = Tr
     checkpoints when a resumed run's budget was extended. `interrupt`: a `StopRequest` shared
     by runs that train side by side in threads (the grid's), which the main thread's Ctrl-C
     sets. `labelling`: where and how long a method that asks a person waits for answers
-    (`AskOptions`; default: 127.0.0.1:8765, an hour).
+    (`AskOptions`; default: 127.0.0.1:8765, an hour). `on_evaluation(step, returns[S],
+    successes[S] or None)` after each evaluation (per seed, the mean over its episodes); a
+    true result stops the run there, checkpointed, as if its budget ended (it resumes).
     `compile_ahead`: when to start compiling the later programs (evaluation, the method's
     events, other chunk lengths) in a background thread (`Engine.compile_run_ahead`):
     "after_first" (default) once the main thread has compiled the first chunk's program;
@@ -56,10 +58,10 @@ def run(engine: Engine, run_dir: Path, resume: bool = False, progress: bool = Tr
         raise ValueError(f"compile_ahead={compile_ahead!r}: one of {AHEAD_WHEN}")
     # a run cut short (tests) would compile programs it never runs
     ahead = compile_ahead if max_chunks is None else "off"
-    loop = _Loop(engine, Path(run_dir), max_chunks, interrupt, ahead)
+    loop = _Loop(engine, Path(run_dir), max_chunks, interrupt, ahead, on_evaluation)
     try:
         loop.start(resume, saved_capacity if resume else None, progress, labelling)
-        while loop.step < engine.cfg.steps and not loop.cut_short():
+        while loop.step < engine.cfg.steps and not loop.cut_short() and not loop.told_to_stop:
             loop.iteration()
     finally:
         loop.close()
@@ -73,7 +75,8 @@ class _Loop:
     """One run's loop state between compiled programs; `iteration` is one chunk with the
     event before it and the evaluation and checkpoint after it."""
 
-    def __init__(self, engine: Engine, run_dir: Path, max_chunks, interrupt, ahead: str):
+    def __init__(self, engine: Engine, run_dir: Path, max_chunks, interrupt, ahead: str,
+                 on_evaluation=None):
         self.engine, self.cfg, self.run_dir = engine, engine.cfg, run_dir
         self.seeds = list(self.cfg.seeds)
         self.max_chunks, self.ahead = max_chunks, ahead
@@ -85,6 +88,7 @@ class _Loop:
         self.step = self.chunks = 0
         self.rs = self.log = self.bar = None
         self.warned_cap = False
+        self.on_evaluation, self.told_to_stop = on_evaluation, False
         engine.person = None
         engine.first_phase_apart = ahead == "first_phase_apart"
 
@@ -164,7 +168,7 @@ class _Loop:
             self._evaluate(timer)
         stop = self.interrupt.requested  # read once: a checkpoint is written for every stop
         if (self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.steps or stop
-                or self.cut_short()):
+                or self.cut_short() or self.told_to_stop):
             self.log.flush()
             with timer("checkpoint_s"):
                 self._save()
@@ -226,6 +230,10 @@ class _Loop:
             self.log.log_eval(self.step, s, float(np.mean(returns[i])),
                               float(np.mean(successes[i])) if self.has_success else None)
         self.bar.evaluated(np.mean(returns), np.mean(successes), timer.seconds["eval_s"])
+        if self.on_evaluation is not None:
+            self.told_to_stop = bool(self.on_evaluation(
+                self.step, np.mean(returns, axis=1),
+                np.mean(successes, axis=1) if self.has_success else None))
 
     def _log_perf(self, timer: WallTimer, length: int, first_step: float | None) -> None:
         chunk_s = max(timer.seconds["chunk_s"], 1e-9)

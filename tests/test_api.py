@@ -1,0 +1,60 @@
+"""The Python entry points: train with callbacks (one stops the run, which resumes), an env
+a notebook steps and renders, a policy evaluated."""
+import jax.numpy as jnp
+import numpy as np
+
+import hprior_jax
+from hprior_jax import cli
+from hprior_jax.agents.sac import SACConfig
+from hprior_jax.config import RunConfig
+from hprior_jax.runs.run_dir import load_run_config
+from tests.test_life_cycle import _rows
+
+TOY = dict(task="toy_point", steps=120, num_seed_steps=20, chunk_steps=20, eval_every=40,
+           checkpoint_every=120, num_eval_episodes=2, seeds=(3, 4),
+           sac=SACConfig(hidden_dim=16, hidden_depth=1, batch_size=8))
+
+
+def test_a_callback_sees_every_evaluation_and_can_stop_the_run_which_resumes(tmp_path):
+    seen = []
+
+    def stop_at_80(evaluation: hprior_jax.Evaluation) -> bool:
+        seen.append(evaluation)
+        return evaluation.step >= 80
+
+    run_dir = hprior_jax.train(RunConfig(**TOY, out=str(tmp_path / "run")), callbacks=(
+        stop_at_80,), progress=False)
+    assert [e.step for e in seen] == [40, 80]
+    assert seen[0].seeds == (3, 4) and seen[0].returns.shape == (2,)
+    assert seen[0].successes.shape == (2,)  # the toy task reports success
+    assert np.all(np.isfinite(seen[1].returns))
+    steps = sorted(int(p.name) for p in (run_dir / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps == [80]  # stopped there, checkpointed although checkpoint_every is 120
+    assert [r[0] for r in _rows(run_dir / "eval.csv")[1:]] == ["40", "40", "80", "80"]
+    assert cli.main(["train", "--resume", str(run_dir), "--no-progress"]) == 0  # to the budget
+    assert load_run_config(run_dir).steps == 120
+    assert _rows(run_dir / "eval.csv")[-1][0] == "120"
+
+
+def test_an_env_a_notebook_steps_and_renders():
+    env = hprior_jax.make_env("cheetah_run", num_envs=2, seed=1)
+    obs = env.reset()
+    assert obs.shape == (2, env.task.obs_size)
+    total = np.zeros(2)
+    for _ in range(3):
+        obs, reward, done, info = env.step(np.zeros((2, env.task.action_size)))
+        total += reward
+    assert obs.shape == (2, env.task.obs_size) and not done.any()
+    np.testing.assert_allclose(info["episode_return"], total, rtol=1e-5)
+    frame = env.render(index=1, width=64, height=48)
+    assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8
+    assert frame.std() > 5  # a scene, not a blank frame
+
+
+def test_evaluate_policy_runs_whole_episodes_of_a_policy():
+    toward_origin = lambda obs: -jnp.clip(obs[:, :1], -1.0, 1.0)
+    returns, successes = hprior_jax.evaluate_policy(toward_origin, "toy_point", episodes=3)
+    still, _ = hprior_jax.evaluate_policy(lambda obs: jnp.zeros((obs.shape[0], 1)),
+                                          "toy_point", episodes=3)
+    assert returns.shape == successes.shape == (3,)
+    assert not np.allclose(returns, still)  # the policy's actions reach the episodes
