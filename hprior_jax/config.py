@@ -44,6 +44,11 @@ class RunConfig:
     keep_checkpoints: int = 2
     """Checkpoints kept (the newest); 0 keeps every one (with --checkpoint-every equal to
     --eval-every, `hprior eval --step` then reaches every evaluation)."""
+    capture_video: int = 0
+    """Every how many evaluations each seed's first evaluation episode is also written as
+    RUN/videos/step<N>_seed<S>.mp4 (its first `video_steps` env steps, at real time); 0:
+    never. Rendering is counted in the evaluation's share of the progress bar."""
+    video_steps: int = 250
     chunk_steps: int = 1000
     """Env steps per compiled chunk (one host round-trip per chunk)."""
     replay_capacity: int = 0
@@ -89,6 +94,9 @@ class RunConfig:
             if getattr(self, name) <= 0:
                 raise ValueError(f"--{name.replace('_', '-')} must be positive, "
                                  f"got {getattr(self, name)}")
+        if self.capture_video < 0 or self.video_steps <= 0:
+            raise ValueError("--capture-video must be >= 0 (0: no videos) and --video-steps "
+                             "positive")
         if self.keep_checkpoints < 0:
             raise ValueError(f"--keep-checkpoints must be >= 0 (0 keeps all), got "
                              f"{self.keep_checkpoints}")

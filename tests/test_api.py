@@ -2,6 +2,7 @@
 a notebook steps and renders, a policy evaluated."""
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hprior_jax
 from hprior_jax import cli
@@ -58,3 +59,21 @@ def test_evaluate_policy_runs_whole_episodes_of_a_policy():
                                           "toy_point", episodes=3)
     assert returns.shape == successes.shape == (3,)
     assert not np.allclose(returns, still)  # the policy's actions reach the episodes
+
+
+@pytest.mark.slow  # cheetah's programs: ~100 s on 2 cores
+def test_capture_video_writes_each_seeds_episode_at_every_kth_evaluation(tmp_path):
+    """On cheetah (the toy task has no scene): every 2nd evaluation, one short MP4 a seed."""
+    import imageio.v3 as iio
+
+    out = tmp_path / "run"
+    assert cli.main(["train", "--task", "cheetah_run", "--preset", "smoke", "--algo", "sac",
+                     "--steps", "60", "--num-seed-steps", "20", "--chunk-steps", "20",
+                     "--eval-every", "20", "--num-eval-episodes", "1", "--seeds", "1", "2",
+                     "--sac.hidden-dim", "16", "--sac.hidden-depth", "1",
+                     "--sac.batch-size", "8", "--capture-video", "2", "--video-steps", "10",
+                     "--out", str(out), "--no-progress"]) == 0
+    videos = sorted(p.name for p in (out / "videos").iterdir())
+    assert videos == ["step20_seed1.mp4", "step20_seed2.mp4",
+                      "step60_seed1.mp4", "step60_seed2.mp4"]
+    assert iio.imread(out / "videos" / videos[0]).shape[0] == 11  # the start and 10 steps

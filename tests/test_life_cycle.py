@@ -311,10 +311,11 @@ def test_grid_passes_eval_budget_and_contacts_as_overrides(tmp_path, monkeypatch
     assert cli.main(["grid", "--tasks", "toy_point", "--out", str(tmp_path)]) == 0
     assert cli.main(["grid", "--tasks", "toy_point", "--eval-budget", "cpu", "--contacts",
                      "all", "--contact-cap", "none", "--eval-every", "3000",
-                     "--out", str(tmp_path)]) == 0
-    assert seen == [{"contacts": "floor", "contact_cap": "task", "hand": "arm"},
+                     "--capture-video", "4", "--out", str(tmp_path)]) == 0
+    assert seen == [{"contacts": "floor", "contact_cap": "task", "hand": "arm",
+                     "capture_video": 0},
                     {"contacts": "all", "contact_cap": "none", "hand": "arm",
-                     "num_eval_episodes": 5, "eval_every": 3000}]
+                     "num_eval_episodes": 5, "eval_every": 3000, "capture_video": 4}]
     # each physics option reaches only the tasks of its domain
     physics = {"contacts": "all", "contact_cap": "none", "hand": "free"}
     cfg = grid.run_config(tmp_path, "drawer_open", "sac", (1,), "smoke", physics)

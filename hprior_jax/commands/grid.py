@@ -44,6 +44,10 @@ def grid(argv: list[str]) -> int:
                         help="time one chunk per phase, the first events and an evaluation "
                              "of every run first, pack the runs by those times and print "
                              "the estimated wall time")
+    parser.add_argument("--capture-video", type=int, default=0, metavar="K",
+                        help="every K-th evaluation, an MP4 of each seed's first evaluation "
+                             "episode in RUN/videos/ (0: none), as `hprior train "
+                             "--capture-video`")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     from hprior_jax.experiments.grid import run_grid
@@ -53,7 +57,8 @@ def grid(argv: list[str]) -> int:
     from hprior_jax.presets import EVAL_BUDGETS
 
     overrides = dict(EVAL_BUDGETS[args.eval_budget], contacts=args.contacts,
-                     contact_cap=args.contact_cap, hand=args.hand)
+                     contact_cap=args.contact_cap, hand=args.hand,
+                     capture_video=args.capture_video)
     overrides.update({k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
                       if v is not None})
     enable_compilation_cache()

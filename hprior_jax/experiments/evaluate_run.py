@@ -6,11 +6,9 @@ import csv
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from hprior_jax.loop.engine import eval_key
-from hprior_jax.render import render_frames, write_video
+from hprior_jax.loop.episodes import episode_video
 from hprior_jax.runs.restore import restore_run
 
 
@@ -47,35 +45,6 @@ def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
     return rows, videos
 
 
-def episode_states(engine, actor_params, keys: jax.Array,
-                   deterministic: bool = True) -> dict[str, np.ndarray]:
-    """Whole episodes' physics states [N, T + 1, ...] (the first after reset), one per key
-    in `keys` [N, 2], with the deterministic (tanh of the mean) or the sampling policy."""
-    env = engine.env  # one env, with the run's task options
-
-    def snapshot(state):
-        return {k: v[0] for k, v in env.task.render_state(state.task.data).items()}
-
-    def one(key):
-        def body(state, t):
-            action = engine.sac.act(actor_params, state.task.obs, jax.random.fold_in(key, t),
-                                    deterministic=deterministic)
-            state, _ = env.advance(state, action, t)
-            return state, snapshot(state)
-
-        first = env.reset(key)
-        _, rest = jax.lax.scan(body, first, jnp.arange(env.episode_length))
-        return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), snapshot(first), rest)
-
-    # at the run's XLA level: another level rounds differently and drifts from its episodes
-    return jax.device_get(jax.jit(jax.vmap(one),
-                                  compiler_options=engine.compiler_options or None)(keys))
-
-
 def _video(engine, actor_params, seed: int, step: int, run_dir: Path) -> Path:
-
-    key = eval_key(seed, step)
-    states = jax.tree.map(lambda x: x[0], episode_states(engine, actor_params, key[None]))
-    frames = render_frames(engine.task.mj_model, states)
-    return write_video(frames, run_dir / "videos" / f"step{step}_seed{seed}.mp4",
-                       fps=1.0 / engine.task.control_timestep)
+    return episode_video(engine, actor_params, seed, step,
+                         run_dir / "videos" / f"step{step}_seed{seed}.mp4")

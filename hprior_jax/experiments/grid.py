@@ -61,7 +61,9 @@ def run_status(cfg: RunConfig) -> str:
         raise FileExistsError(f"{run_dir} is not empty but holds no config.json; move it away "
                               "so the grid can start that run afresh")
     saved = load_run_config(run_dir)
-    differs = [k for k in differing_fields(saved, cfg) if k != "out"]
+    # videos change nothing that is learned: a rerun may ask for them or not
+    differs = [k for k in differing_fields(saved, cfg)
+               if k not in ("out", "capture_video", "video_steps")]
     if differs:
         raise ValueError(
             f"{run_dir} was run with a different configuration ({', '.join(differs)}); use "

@@ -6,8 +6,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from hprior_jax.experiments.evaluate_run import episode_states
 from hprior_jax.labelling.store import write_queries
+from hprior_jax.loop.episodes import episode_states
 from hprior_jax.runs.restore import restore_run
 
 

@@ -17,6 +17,7 @@ from hprior_jax.checkpoint import Checkpointer
 from hprior_jax.labelling.teacher import AskOptions, HumanTeacher, LabellingStopped
 from hprior_jax.loop import checkpoints, devices
 from hprior_jax.loop.engine import Engine
+from hprior_jax.loop.episodes import episode_video
 from hprior_jax.loop.progress import ProgressBar, WallTimer, process_age
 from hprior_jax.loop.state import RunState
 from hprior_jax.loop.stopping import Interrupted, StopRequest, TrainingDiverged
@@ -89,6 +90,7 @@ class _Loop:
         self.rs = self.log = self.bar = None
         self.warned_cap = False
         self.on_evaluation, self.told_to_stop = on_evaluation, False
+        self.evaluations = 0  # by this process: --capture-video counts from the first
         engine.person = None
         engine.first_phase_apart = ahead == "first_phase_apart"
 
@@ -229,11 +231,26 @@ class _Loop:
         for i, s in enumerate(self.seeds):
             self.log.log_eval(self.step, s, float(np.mean(returns[i])),
                               float(np.mean(successes[i])) if self.has_success else None)
+        every = self.cfg.capture_video
+        if every and self.evaluations % every == 0:
+            with timer("eval_s"):  # rendering is part of what evaluation costs
+                self._videos()
+        self.evaluations += 1
         self.bar.evaluated(np.mean(returns), np.mean(successes), timer.seconds["eval_s"])
         if self.on_evaluation is not None:
             self.told_to_stop = bool(self.on_evaluation(
                 self.step, np.mean(returns, axis=1),
                 np.mean(successes, axis=1) if self.has_success else None))
+
+    def _videos(self) -> None:
+        """RUN/videos/step<N>_seed<S>.mp4 of each seed's first evaluation episode."""
+        actors = devices.fetch(self.rs.sac.actor)  # in every process: seeds may span them
+        if not self.primary:
+            return
+        for i, seed in enumerate(self.seeds):
+            episode_video(self.engine, jax.tree.map(lambda x: x[i], actors), seed, self.step,
+                          self.run_dir / "videos" / f"step{self.step}_seed{seed}.mp4",
+                          self.cfg.video_steps)
 
     def _log_perf(self, timer: WallTimer, length: int, first_step: float | None) -> None:
         chunk_s = max(timer.seconds["chunk_s"], 1e-9)

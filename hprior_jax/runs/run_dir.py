@@ -87,7 +87,7 @@ def read_config(d: dict) -> RunConfig:
 # what a resumed run may change: the budget and the cadences (they decide when to evaluate
 # and save, not what is learned); everything else would make a different run
 CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
-                        "keep_checkpoints")
+                        "keep_checkpoints", "capture_video", "video_steps")
 
 
 def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int | None]:
