@@ -35,7 +35,9 @@ def test_page_next_query_and_clips(folder):
     page = client.get("/")
     assert page.status_code == 200 and "Which clip is better?" in page.text
     nxt = client.get("/api/next").json()
-    assert nxt["query"] == {"id": "r1-q0000", "round": 1, "task": "cheetah_run"}
+    assert nxt["query"] == {"id": "r1-q0000", "round": 1, "task": "cheetah_run",
+                            "goal": "Run forward (to the right) as fast as possible.",
+                            "fps": 20.0}
     assert nxt["progress"] == {"round": 1, "asked": 3, "answered": 0}
     clips = [client.get(f"/api/clip/r1-q0000/{side}") for side in (1, 2)]
     assert all(c.status_code == 200 and c.headers["content-type"] == "video/mp4" for c in clips)

@@ -1,6 +1,8 @@
 """The labelling page in a real browser: headless Chromium (Debian's `chromium` and
 `chromium-driver`, installed by .ci/run) driven by Selenium loads the page served by uvicorn,
-sees both clips play, answers with a click and with a key, reloads and finds its progress.
+sees both clips play, the goal line, the speed and step controls, answers that wait until
+both clips have played through, answers with a click and with a key, reloads and finds its
+progress.
 The screenshot lands in benchmarks/results/labelling_page.png."""
 import shutil
 import time
@@ -64,11 +66,31 @@ def test_a_person_labels_in_a_browser(server, browser):
     _wait(lambda: "r1-q0000" in browser.find_element(By.ID, "where").text)
     _wait(lambda: _playing(browser, "left") and _playing(browser, "right"))
     assert "0 of 3 answered" in browser.find_element(By.ID, "progress").text
+    assert browser.find_element(By.ID, "goal").text == (
+        "Goal: Run forward (to the right) as fast as possible.")
+    script = browser.execute_script
+    right_button = browser.find_element(By.CSS_SELECTOR, "[data-answer=right]")
+    _wait(right_button.is_enabled)  # both clips played through once
     SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
     browser.save_screenshot(str(SCREENSHOT))
+    # speed and step control both clips together
+    browser.find_element(By.CSS_SELECTOR, "#speed option[value='0.25']").click()
+    assert script("return [left.playbackRate, right.playbackRate]") == [0.25, 0.25]
+    browser.find_element(By.ID, "forward").click()
+    assert script("return left.paused && right.paused && left.currentTime === right.currentTime")
+    browser.find_element(By.ID, "pause").click()  # plays again
+    _wait(lambda: _playing(browser, "left") and _playing(browser, "right"))
+    # not yet seen: no answer is taken, by button or key
+    script("seen = {left: false, right: false}; gate();")
+    assert not right_button.is_enabled()
+    browser.find_element(By.TAG_NAME, "body").send_keys("2")
+    time.sleep(0.3)
+    assert folder.answers() == {} and "r1-q0000" in browser.find_element(By.ID, "where").text
+    _wait(right_button.is_enabled)  # the loops wrap: seen again
     # a click, then a key
-    browser.find_element(By.CSS_SELECTOR, "[data-answer=right]").click()
+    right_button.click()
     _wait(lambda: "r1-q0001" in browser.find_element(By.ID, "where").text)
+    _wait(browser.find_element(By.CSS_SELECTOR, "[data-answer=left]").is_enabled)
     browser.find_element(By.TAG_NAME, "body").send_keys("1")
     _wait(lambda: "r1-q0002" in browser.find_element(By.ID, "where").text)
     answers = folder.answers()

@@ -10,6 +10,7 @@ __future__ import annotations` here: FastAPI reads the request bodies' types at 
 import secrets
 
 from hprior_jax.labelling.clips import clip_path
+from hprior_jax.labelling.goals import goal
 from hprior_jax.labelling.page import PAGE
 from hprior_jax.labelling.store import LabelError, QueryFolder
 
@@ -63,7 +64,8 @@ def make_app(folder: QueryFolder, token: str | None = None):
     @app.get("/api/next")
     def next_query():
         q = folder.next_query()
-        return {"query": None if q is None else {"id": q.id, "round": q.round, "task": q.task},
+        return {"query": None if q is None else {"id": q.id, "round": q.round, "task": q.task,
+                                                 "goal": goal(q.task), "fps": q.fps},
                 "progress": folder.progress(None if q is None else q.round)}
 
     @app.get("/api/clip/{qid}/{side}")
