@@ -1,6 +1,8 @@
 """Learning-curve plots from a run directory's eval.csv (host side)."""
 from __future__ import annotations
 
+import json
+import textwrap
 from collections import defaultdict
 from pathlib import Path
 
@@ -33,9 +35,33 @@ def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "") -> Path:
     for ax, (column, ylabel) in zip(axes[0], panels):
         _plot_seeds(ax, read_eval_csv(eval_csv, column), ylabel)
     fig.suptitle(title)
+    if read_eval_csv(eval_csv, "success"):
+        axes[0][0].set_ylim(-0.02, 1.02)  # a rate
     fig.tight_layout()
-    fig.savefig(out_png, dpi=120)
-    return Path(out_png)
+    return save_figure(fig, out_png)
+
+
+def wrapped(title: str, width: int = 60) -> str:
+    """A title broken into lines that fit the figure (a long one is clipped otherwise)."""
+    return "\n".join(textwrap.wrap(title, width))
+
+
+def save_figure(fig, path: Path, dpi: int = 120, **kwargs) -> Path:
+    """Saves `fig` as a PNG whose text chunks say what it shows ("Title" and, as JSON in
+    "Description", each axes' title, axis labels, y range, legend entries, labelled lines'
+    colours and position): what a reader or a test can check without looking."""
+    axes = [dict(title=ax.get_title(), xlabel=ax.get_xlabel(), ylabel=ax.get_ylabel(),
+                 ylim=[float(v) for v in ax.get_ylim()],
+                 legend=[t.get_text() for t in ax.get_legend().get_texts()]
+                 if ax.get_legend() else [],
+                 lines={line.get_label(): line.get_color() for line in ax.get_lines()
+                        if not line.get_label().startswith("_")},
+                 position=[round(float(v), 4) for v in ax.get_position().bounds])
+            for ax in fig.get_axes()]
+    title = fig._suptitle.get_text() if fig._suptitle else (axes[0]["title"] if axes else "")
+    fig.savefig(path, dpi=dpi, metadata={"Title": title, "Description": json.dumps(axes)},
+                **kwargs)
+    return Path(path)
 
 
 def _plot_seeds(ax, curves: dict, ylabel: str) -> None:

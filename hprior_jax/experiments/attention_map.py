@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from hprior_jax.methods import registry
+from hprior_jax.plotting import save_figure, wrapped
 from hprior_jax.prior import world_model as wm
 from hprior_jax.prior.attention import _QUERY_OFFSET, credit_from_attention
 from hprior_jax.runs.restore import restore_run
@@ -51,18 +52,22 @@ def plot_attention_map(rows: np.ndarray, alpha: np.ndarray, out_png: Path, title
         ax.set_ylabel(f"layer\n({name})")
     # The colorbar takes its width from all three panels so that the heat maps and
     # the α bars keep one time axis.
-    fig.colorbar(im, ax=axes.tolist(), shrink=0.55, anchor=(0.0, 1.0),
+    # above the panels: the right side holds the true reward's axis
+    fig.colorbar(im, ax=axes.tolist(), location="top", shrink=0.6, aspect=40, pad=0.02,
                  label="attention of the final step")
     axes[2].bar(np.arange(t), alpha, color="tab:orange", label="α (mean over layers)")
+    handles = axes[2].get_legend_handles_labels()
     if true_reward is not None:
         ax2 = axes[2].twinx()
         ax2.plot(np.arange(t), true_reward, color="k", lw=1, label="true reward")
         ax2.set_ylabel("true reward")
+        more = ax2.get_legend_handles_labels()
+        handles = (handles[0] + more[0], handles[1] + more[1])
+    axes[2].legend(*handles, fontsize=7, loc="upper left")
     axes[2].set_xlabel("time step in segment")
     axes[2].set_ylabel("α")
-    fig.suptitle(title)
-    out_png = Path(out_png)
-    fig.savefig(out_png, dpi=120, bbox_inches="tight")
+    fig.suptitle(wrapped(title, 70))
+    out_png = save_figure(fig, Path(out_png), bbox_inches="tight")
     plt.close(fig)
     return out_png
 
@@ -97,14 +102,22 @@ def attention_maps_for_run(run_dir: Path, pair: int = 0, seed: int | None = None
     for side, (obs, act) in enumerate(((prefs.obs1, prefs.act1), (prefs.obs2, prefs.act2)),
                                       start=1):
         rows, alpha = fn(wm_params, wm.scaled(scaler, obs[pair]), act[pair])
-        label = int(prefs.labels[pair])
+        verdict = _verdict(int(prefs.labels[pair]), side)
         title = (f"{cfg.task} seed {seed} step {step}: pair {pair}, segment {side} "
-                 f"(teacher label {label})")
+                 f"({verdict})")
         true_reward = segment_true_reward(state.replay, np.asarray(obs[pair]))
         paths.append(plot_attention_map(np.asarray(rows), np.asarray(alpha),
                                         out / f"seed{seed}_pair{pair}_seg{side}.png", title,
                                         true_reward=true_reward))
     return paths
+
+
+def _verdict(label: int, side: int) -> str:
+    """The teacher's answer (B-Pref: 0 the first segment, 1 the second, -1 equal) as seen
+    from segment `side`."""
+    if label == -1:
+        return "teacher: equally good"
+    return "preferred by the teacher" if label == side - 1 else "not preferred by the teacher"
 
 
 def segment_true_reward(replay, seg_obs: np.ndarray) -> np.ndarray | None:

@@ -15,7 +15,7 @@ import numpy as np
 from hprior_jax.experiments.attention_map import attention_maps_for_run
 from hprior_jax.experiments.scores import task_scores
 from hprior_jax.methods import registry
-from hprior_jax.plotting import read_eval_csv
+from hprior_jax.plotting import read_eval_csv, save_figure
 from hprior_jax.run_log import read_jsonl
 from hprior_jax.statistics import paired_t_test
 
@@ -141,6 +141,12 @@ def _labels_used(rounds: list[tuple[int, float]], step: int) -> float:
     return max(done) if done else 0.0
 
 
+def method_color(algo: str) -> str:
+    """The colour of `algo` in every figure: its place in the registry's list."""
+    names = registry.names()
+    return f"C{names.index(algo) % 10}" if algo in names else "k"
+
+
 def plot_task_curves(task: str, by_algo: dict[str, Path], out_dir: Path) -> list[Path]:
     """Mean and ±1 std over seeds per algorithm, against env steps and against labels used."""
     import matplotlib
@@ -168,16 +174,20 @@ def plot_task_curves(task: str, by_algo: dict[str, Path], out_dir: Path) -> list
             else:
                 x = np.asarray(steps)
             mean, std = values.mean(0), values.std(0)
-            line, = ax.plot(x, mean, lw=1.8, label=f"{algo} ({len(curves)} seeds)")
-            ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.15)
+            n = len(curves)
+            color = method_color(algo)  # one colour per method in every figure
+            ax.plot(x, mean, lw=1.8, color=color,
+                    label=f"{algo} ({n} seed{'s' if n != 1 else ''})")
+            ax.fill_between(x, mean - std, mean + std, color=color, alpha=0.15)
         ax.set_xlabel("environment steps" if x_axis == "steps" else "preference labels used")
         ax.set_ylabel(f"evaluation {ylabel}")
+        if metric == "success":
+            ax.set_ylim(-0.02, 1.02)  # a rate
         ax.set_title(task)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        path = out_dir / f"{task}_vs_{x_axis}.png"
-        fig.savefig(path, dpi=120)
+        path = save_figure(fig, out_dir / f"{task}_vs_{x_axis}.png")
         plt.close(fig)
         paths.append(path)
     return paths
@@ -249,7 +259,7 @@ def make_report(root: Path, out: Path | None = None, how: str = "mean-of-ratios"
                     for t, by_algo in sorted(by_task.items())])
     _write_csv(out / "t_tests.csv", tests)
     _write_csv(out / "reward_correlation.csv", corr)
-    md = [f"# Results of {root}", "",
+    md = [f"# Results of {Path(root).name}", "",
           f"Normalization: {how} over the evaluation steps after SAC's random seed steps "
           "(appendix D; see "
           "hprior_jax/experiments/scores.py), SAC reference "

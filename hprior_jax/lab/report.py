@@ -37,6 +37,7 @@ from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE
 from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison
 
 DEFAULT_TITLE = "Reward-learning lab"
+MIN_PAIRED = 3  # paired seeds below which no direction is called
 
 
 def rule_order(rows) -> list[str]:
@@ -168,8 +169,8 @@ def _difference_cell(entry: dict) -> str:
 
 def _sentence(rule: str, versus: str, budget: int, c: dict) -> str:
     head = f"{rule} − {versus} at {budget} labels"
-    if c["n"] < 2:
-        return f"{head}: not testable (n = {c['n']} paired seeds)"
+    if c["n"] < MIN_PAIRED:  # at n = 2 a t-test calls a -0.001 "lower" when both agree
+        return f"{head}: not testable (n = {c['n']} paired seeds; {MIN_PAIRED} needed)"
     estimate = (f"{c['diff']:+.3f} [{c['diff_lo']:.3f}, {c['diff_hi']:.3f}] "
                 f"({_p_text(c['p'])}, n = {c['n']})")
     if c["p"] < ALPHA:

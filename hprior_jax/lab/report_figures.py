@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from hprior_jax.lab.metrics import METRIC_LABEL
+from hprior_jax.plotting import save_figure, wrapped
 
 
 def png_name(task: str, metric: str) -> str:
@@ -29,9 +30,8 @@ def plot_metric(entries: list[dict], out_png: Path, title: str) -> Path:
     ax.set_xticks(budgets, [str(b) for b in budgets])  # ticks at the budgets that were run
     ax.set_xlabel("preference labels")
     ax.set_ylabel(METRIC_LABEL[entries[0]["metric"]])
-    ax.set_title(title)
+    ax.set_title(wrapped(title), fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=120)
-    return out_png
+    return save_figure(fig, out_png)
