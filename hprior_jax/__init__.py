@@ -2,8 +2,8 @@
 from tasks import _xla_flags  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 from hprior_jax.api import Env, Evaluation, evaluate_policy, make_env, train
-from hprior_jax.export import load_policy, load_reward
+from hprior_jax.export import export_seed, load_policy, load_reward
 
 __version__ = "0.1.0"
-__all__ = ["Env", "Evaluation", "evaluate_policy", "load_policy", "load_reward", "make_env",
-           "train"]
+__all__ = ["Env", "Evaluation", "evaluate_policy", "export_seed", "load_policy", "load_reward",
+           "make_env", "train"]
