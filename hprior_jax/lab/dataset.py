@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from hprior_jax import presets
+from hprior_jax.buffers.episodes import split_column
 from hprior_jax.envs import task_info
 from hprior_jax.methods import registry
 from hprior_jax.runs.build import build_engine, train
@@ -96,14 +97,6 @@ def split_episodes(obs, act, reward, episode_length: int, heldout_every: int = 3
     """Replay rows (one env, never wrapped) -> (train, held-out) episode arrays; episode e
     is held out when e % heldout_every == heldout_every - 1."""
     return [split_column(x, episode_length, heldout_every) for x in (obs, act, reward)]
-
-
-def split_column(x, episode_length: int, heldout_every: int = 3):
-    """One replay column's rows -> (train, held-out) episodes [E, L, ...] (split_episodes)."""
-    n = x.shape[0] // episode_length
-    ep = x[: n * episode_length].reshape((n, episode_length) + x.shape[1:])
-    held = np.arange(n) % heldout_every == heldout_every - 1
-    return ep[~held], ep[held]
 
 
 def heldout_pairs(reward: np.ndarray, segment_len: int, num_pairs: int,

@@ -17,16 +17,8 @@ import numpy as np
 
 from hprior_jax import presets
 from hprior_jax.lab import seed_world_model
-from hprior_jax.lab.config import (
-    ABLATIONS,
-    CONTROLS,
-    NO_PRIOR,
-    OWN_PROGRAM,
-    UNLABELLED_SEGMENTS,
-    WORLD_MODEL_CREDITS,
-    GivenLabels,
-    LabConfig,
-)
+from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, UNLABELLED_SEGMENTS,
+                                   WORLD_MODEL_CREDITS, GivenLabels, LabConfig)
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling

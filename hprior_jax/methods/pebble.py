@@ -27,38 +27,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hprior_jax.buffers import preferences, replay
+from hprior_jax.buffers import episodes, preferences, replay
 from hprior_jax.loop.devices import fetch
 from hprior_jax.loop.state import RunState
-from hprior_jax.methods.base import (
-    RANDOM,
-    SAC_METRICS,
-    SAC_PHASE,
-    Method,
-    Phase,
-    random_step,
-    sac_step,
-)
-from hprior_jax.methods.pebble_family import (
-    EpisodeWindow,
-    Extension,
-    PebbleConfig,
-    PebbleState,
-    pebble_preset,
-    reward_config,
-)
+from hprior_jax.methods.base import (RANDOM, SAC_METRICS, SAC_PHASE, Method, Phase, random_step,
+                                     sac_step)
+from hprior_jax.methods.pebble_family import (EpisodeWindow, Extension, PebbleConfig, PebbleState,
+                                              pebble_preset, reward_config)
 from hprior_jax.methods.registry import MethodSpec
 from hprior_jax.networks.reward_ensemble import init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_reward
 from hprior_jax.pbrl.query import SegmentPairs, cut_segments, select_queries
 from hprior_jax.pbrl.relabel import relabel_rewards
 from hprior_jax.pbrl.state_entropy import init_running_mean_std, state_entropy_reward
-from hprior_jax.pbrl.teacher import (
-    TeacherOutput,
-    TeacherThresholds,
-    compute_thresholds,
-    teacher_labels,
-)
+from hprior_jax.pbrl.teacher import (TeacherOutput, TeacherThresholds, compute_thresholds,
+                                     teacher_labels)
 
 UNSUP = "unsup"
 RETURN_WINDOW = 10  # BPref: teacher thresholds from the mean return of the last 10 episodes
@@ -242,16 +225,10 @@ class Pebble(Method):
     def recent_episodes(self, buf) -> EpisodeWindow:
         """The last `trajectory_episodes` complete episodes, straight from the replay buffer
         (which holds whole episodes in order from row 0)."""
-        L = self.kit.env.episode_length
-        n_stored = buf.capacity // L
-        window = min(self.pcfg.trajectory_episodes, n_stored)
-        n_episodes = buf.size // L
-        start = jnp.maximum(n_episodes - window, 0)
-        episodes = lambda x: jax.lax.dynamic_slice_in_dim(
-            x.reshape((n_stored, L) + x.shape[1:]), start, window, axis=0)
-        return EpisodeWindow(episodes(buf.obs), episodes(buf.action), episodes(buf.true_reward),
-                             jnp.minimum(n_episodes, window),
-                             jax.tree.map(episodes, buf.physics))
+        last, count = episodes.last_episodes(buf.size, buf.capacity, self.kit.env.episode_length,
+                                             self.pcfg.trajectory_episodes)
+        return EpisodeWindow(last(buf.obs), last(buf.action), last(buf.true_reward), count,
+                             jax.tree.map(last, buf.physics))
 
     def teacher_rewards(self, pairs) -> tuple[jax.Array, jax.Array]:
         """The true per-step rewards the teacher judges each segment of a pair by."""

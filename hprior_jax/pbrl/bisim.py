@@ -30,6 +30,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from hprior_jax.buffers import episodes
 from hprior_jax.buffers.replay import ReplayState
 from hprior_jax.networks.reward_ensemble import RewardConfig, per_member_embeddings
 from hprior_jax.pbrl.preference import RewardTerm
@@ -60,14 +61,9 @@ def sample_transitions(key: jax.Array, buf: ReplayState, episode_len: int, capac
     fixed-length tasks), where row i + 1 would start another episode."""
     if episode_len < 2:
         raise ValueError(f"episode_len={episode_len}: a transition needs an episode of 2 steps")
-    size = buf.size.astype(jnp.int32)
-    per_ep = episode_len - 1  # transitions per episode
-    last = jnp.maximum(size - 1, 0)  # rows 0..size-2 can start a transition
-    n = last - last // episode_len  # of which the non-last steps: a prefix of the enumeration below
-    u = jax.random.randint(key, (capacity, per_row), 0, jnp.maximum(n, 1))
-    i = (u // per_ep) * episode_len + u % per_ep  # the u-th non-last step, in buffer order
-    i = jnp.minimum(i, buf.capacity - 2)  # only when n == 0 (then invalid); keeps i + 1 in range
-    valid = (n > 0) & (buf.not_done[i] > 0)
+    i, any_step = episodes.rows_with_next(key, buf.size, episode_len, (capacity, per_row),
+                                          buf.capacity)
+    valid = any_step & (buf.not_done[i] > 0)
     return BisimTransitions(obs=buf.obs[i], act=buf.action[i], next_obs=buf.obs[i + 1],
                             next_act=buf.action[i + 1], valid=valid)
 

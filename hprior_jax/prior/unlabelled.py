@@ -15,10 +15,10 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
+from hprior_jax.buffers.episodes import segment_rows
 from hprior_jax.networks.reward_ensemble import RewardConfig, per_member_rewards
 from hprior_jax.pbrl.preference import RewardTerm
 from hprior_jax.prior.loss import prior_loss
-from hprior_jax.prior.world_model import segment_rows
 
 STREAM = 0x756E  # folded off a round's key: the draw leaves the round's other draws alone
 

@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from hprior_jax.buffers.episodes import segment_rows
 from hprior_jax.networks.transformer_xl import TransformerXL, TransformerXLConfig
 
 Params = Any
@@ -348,26 +349,6 @@ def sample_segments(key: jax.Array, obs: jax.Array, act: jax.Array, size: jax.Ar
     idx = segment_rows(key, size, episode_len=episode_len, batch_size=batch_size,
                        segment_len=segment_len)
     return obs[idx], act[idx]
-
-
-def segment_rows(key: jax.Array, size: jax.Array, *, episode_len: int, batch_size: int,
-                 segment_len: int) -> jax.Array:
-    """Replay rows idx[B, T] of uniform segments within episodes.
-
-    Layout assumed (hprior_jax.buffers.replay with one env, never wrapped): rows 0..size-1 are
-    valid and episode e occupies rows [e·L, (e+1)·L), the last one possibly unfinished. Starts are
-    uniform over every (episode, offset) whose T steps lie inside one episode and inside the valid
-    prefix, so obs[:, t+1] is the true next state of obs[:, t]. Needs size >= segment_len (the
-    caller's schedule guarantees it; with fewer rows the result is meaningless).
-    """
-    if segment_len > episode_len:
-        raise ValueError(f"segment_len={segment_len} exceeds episode_len={episode_len}")
-    per_ep = episode_len - segment_len + 1
-    full, rem = size // episode_len, size % episode_len
-    n_valid = full * per_ep + jnp.maximum(rem - segment_len + 1, 0)
-    u = jax.random.randint(key, (batch_size,), 0, jnp.maximum(n_valid, 1))
-    start = (u // per_ep) * episode_len + u % per_ep
-    return start[:, None] + jnp.arange(segment_len)[None, :]
 
 
 def train(state: WorldModelState, key: jax.Array, obs_buf: jax.Array, act_buf: jax.Array,
