@@ -3,9 +3,14 @@
 Rendering needs an OpenGL backend without a display: OSMesa (Debian: `libosmesa6`, the
 default here) or EGL (`HPRIOR_GL=egl`, a GPU driver's libEGL). The project imports mujoco
 with MUJOCO_GL=disable (MJX needs no GL), so the backend's context class is handed to
-mujoco's renderer here, on first use."""
+mujoco's renderer here, on first use.
+
+Frames are drawn from a task's render scene (`tasks.render_scene`): a render-only model with
+the physics model's joints (MetaWorld: metaworld's own scene with its meshes, table and
+floor, which the physics model leaves out), posed by the recorded states."""
 from __future__ import annotations
 
+import copy
 import os
 import warnings
 from pathlib import Path
@@ -13,7 +18,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from tasks.base import RENDER_FIELDS as FIELDS  # what positions a frame
+from tasks.base import RENDER_FIELDS as FIELDS  # noqa: F401  (what positions a frame)
+from tasks.render_scene import render_scene
 
 # The MP4 encoder is an ffmpeg child process (fork, then exec at once), which JAX's warning
 # about forking a multithreaded process does not concern (a filter, not a context manager:
@@ -40,12 +46,24 @@ def _install_gl_context() -> None:
 
 
 def default_camera(mj_model: mujoco.MjModel, lookat: np.ndarray | None = None):
-    """The model's first camera, else a free camera from three quarters above, looking at
-    `lookat` (closer) or the model's centre."""
-    if mj_model.ncam:
-        return 0
+    """The camera a task's frames are drawn from (`mj_model`: the task's physics model):
+    its render scene's (a named camera, or a fixed free camera on the whole scene, e.g.
+    MetaWorld's table; `lookat` is then unused), else the model's first camera, else a free
+    camera from three quarters above, looking at `lookat` (closer) or the model's centre."""
+    scene = render_scene(mj_model)
+    model = scene.model
+    if isinstance(scene.camera, str):
+        return model.camera(scene.camera).id
     camera = mujoco.MjvCamera()
-    mujoco.mjv_defaultFreeCamera(mj_model, camera)
+    if isinstance(scene.camera, dict):
+        camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+        camera.lookat[:] = scene.camera["lookat"]
+        for name in ("distance", "azimuth", "elevation"):
+            setattr(camera, name, scene.camera[name])
+        return camera
+    if model.ncam:
+        return 0
+    mujoco.mjv_defaultFreeCamera(model, camera)
     camera.azimuth, camera.elevation = 135.0, -30.0
     camera.distance *= 0.6
     if lookat is not None:
@@ -61,20 +79,26 @@ def hand_start(states: dict[str, np.ndarray]) -> np.ndarray | None:
 
 
 def render_frames(mj_model: mujoco.MjModel, states: dict[str, np.ndarray], width: int = 320,
-                  height: int = 240, camera=None) -> np.ndarray:
-    """uint8[T, height, width, 3]: one frame per row of `states` (each of FIELDS [T, ...]
-    that the model has), from `camera` (default: `default_camera` at the hand's start)."""
+                  height: int = 240, camera=None, segmentation: bool = False) -> np.ndarray:
+    """uint8[T, height, width, 3]: one frame per row of `states` (`Task.render_state`'s
+    fields, each [T, ...]) of the task whose physics model is `mj_model`, drawn from its
+    render scene (`tasks.render_scene`), from `camera` (default: `default_camera` at the
+    hand's start). segmentation: int32[T, height, width, 2] instead, each pixel's (object
+    id, mjtObj type) in the render scene's model, (-1, -1) where nothing is drawn."""
     _install_gl_context()
+    scene = render_scene(mj_model)
     if camera is None:
         camera = default_camera(mj_model, hand_start(states))
-    data = mujoco.MjData(mj_model)
+    model = copy.copy(scene.model)  # the placement edits body_pos
+    model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
+    model.vis.global_.offheight = max(model.vis.global_.offheight, height)
+    data = mujoco.MjData(model)
     frames = []
-    with mujoco.Renderer(mj_model, height, width) as renderer:
+    with mujoco.Renderer(model, height, width) as renderer:
+        if segmentation:
+            renderer.enable_segmentation_rendering()
         for t in range(len(states["qpos"])):
-            for name in FIELDS:
-                if name in states and getattr(data, name).size:
-                    getattr(data, name)[:] = states[name][t]
-            mujoco.mj_forward(mj_model, data)
+            scene.pose(model, data, states, t)
             renderer.update_scene(data, camera=camera)
             frames.append(renderer.render())
     return np.stack(frames)

@@ -28,7 +28,7 @@ def jaxlib_needs_fusion_flag() -> bool:
     """Whether the installed jaxlib knows FLAG and needs it. jaxlib 0.11 removed the flag
     (an unknown flag in XLA_FLAGS aborts the process) and the slowdown with it: on jax 0.11.2
     without any flag, jit(mjx.kinematics) on metaworld's drawer scene takes 3.8 ms (median,
-    this 2-core CPU, 2026-12-04). The project pins 0.10.2; a GPU machine's own newer jax (its
+    this project's 2-core CPU). The project pins 0.10.2; a GPU machine's own newer jax (its
     CUDA build) runs the code unpinned."""
     try:
         major, minor = (int(x) for x in metadata.version("jaxlib").split(".")[:2])

@@ -2,7 +2,7 @@
 
 XLA on CPU steps a vmapped DM Control port more slowly per env at a wide batch than at a
 narrow one. Batch 128, env steps/s, one vmap against 8 groups of 16 stepped in turn with
-`lax.map` (2026-12-04, this project's 2-core CPU, `python -m benchmarks.env_throughput
+`lax.map` (this project's 2-core CPU, `python -m benchmarks.env_throughput
 --groups none 16`): walker 535 -> 1908, cheetah 9311 -> 15505, quadruped 1436 -> 2512
 (benchmarks/results/env_throughput_groups.csv). The MetaWorld ports, whose solver is already
 capped at 5 iterations, gained nothing at batch 64 (0.70-1.42x across the six tasks, mostly

@@ -227,3 +227,30 @@ def test_an_io_error_ends_with_one_line_and_the_run_still_resumes(site, base, tm
     assert _train("--resume", str(clean), "--steps", "120") == 0
     assert _train("--resume", str(run), "--steps", "120") == 0
     assert _rows(run / "eval.csv") == _rows(clean / "eval.csv")
+
+
+def test_a_checkpoint_without_a_render_field_recorded_since_restores_with_zeros(tmp_path):
+    """A replay buffer's recorded physics gained a field after the checkpoint was written
+    (MetaWorld's object placement): the rest restores, the new field stays `like`'s."""
+    from flax import struct
+
+    from hprior_jax.checkpoint import Checkpointer
+    from hprior_jax.loop.checkpoints import restore_latest
+
+    @struct.dataclass
+    class Replay:
+        obs: jax.Array
+        physics: dict
+
+    @struct.dataclass
+    class State:
+        replay: Replay
+
+    ckpt = Checkpointer(tmp_path / "checkpoints")
+    ckpt.save(5, State(Replay(np.arange(3.0), {"qpos": np.ones((3, 2))})))
+    like = State(Replay(np.zeros(3), {"qpos": np.zeros((3, 2)), "placement": np.zeros((3, 3))}))
+    step, state = restore_latest(ckpt, like)
+    ckpt.close()
+    assert step == 5 and np.array_equal(state.replay.obs, np.arange(3.0))
+    physics = state.replay.physics
+    assert np.all(physics["qpos"] == 1) and np.all(physics["placement"] == 0)

@@ -11,6 +11,11 @@ from hprior_jax.loop.run_files import commit_extension
 from hprior_jax.loop.state import RunState
 
 
+# the physics fields a replay buffer records for rendering (a person's clips): a field added
+# later (e.g. the MetaWorld object's placement) is absent from older checkpoints
+RECORDED = ".replay.physics"
+
+
 class CheckpointUnreadable(ValueError):
     """No checkpoint of a run could be restored; the message names the newest and why."""
 
@@ -35,8 +40,13 @@ def restore_latest(ckpt, like: RunState, step: int | None = None, on_unreadable=
         try:
             stored = ckpt.stored_names(candidate)
             legacy = any(name.startswith(".extra") for name in stored)
-            return ckpt.restore(like, candidate,
-                                rename=legacy_checkpoint_name if legacy else None)
+
+            def rename(name: str) -> str | None:
+                old = legacy_checkpoint_name(name) if legacy else name
+                if old is not None and old not in stored and name.startswith(RECORDED):
+                    return None  # a field recorded since it was written: `like`'s zeros
+                return old
+            return ckpt.restore(like, candidate, rename=rename)
         except Exception as e:  # orbax raises many kinds for a damaged checkpoint
             if on_unreadable is None or i + 1 == len(candidates):
                 raise CheckpointUnreadable(

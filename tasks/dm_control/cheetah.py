@@ -1,17 +1,16 @@
 """dm_control `cheetah` `run` on MJX (dm_control/suite/cheetah.py).
 
-Observation (17): position = qpos[1:] (8, horizontal root position dropped), velocity =
-qvel (9). Reward: tolerance(torso subtree linear velocity x, bounds=(10, inf), margin=10,
-value_at_margin=0, sigmoid='linear'). Control timestep 0.01 s = physics timestep (1
-substep), time limit 10 s -> 1000 steps.
+Observation (17): qpos[1:] (horizontal root position dropped), qvel. Reward:
+tolerance(torso subtree linear velocity x, bounds=(10, inf), margin=10, value_at_margin=0,
+sigmoid='linear'). Control timestep 0.01 s = 1 substep, 10 s -> 1000 steps. Reset: limited
+joints uniform in their range, then 200 zero-control settling substeps, as dm_control (the
+first substep's step2 reads the drawn pose, dm_control's the default one: the same
+distribution, not the same draw).
 
-Reset: limited joints uniform in their range, then 200 zero-control substeps to settle, as
-dm_control. One known difference: dm_control runs the first settling substep's `mj_step2`
-on forward quantities computed at the default pose (its reset_context ran `mj_forward`
-before the pose was randomised); we run the position and velocity stages (`mj_step1`, all
-that `mj_step2` reads) at the randomised pose first. Both then settle
-for 200 steps, so the initial-state distributions agree (checked statistically in the
-parity benchmark), but a reset from the same random draw is not bit-identical.
+Parity (`python -m benchmarks.dm_control_parity --tasks cheetah_run`): same state, obs within
+3.9e-7, reward within 4.1e-8; same actions from dm_control's reset, return within 2.6e-7
+over 20 steps, 5.5e-6 over 100; random-policy return 2.88 vs 3.44 (10 episodes). Details:
+docs/ports/dm_control.md.
 """
 from __future__ import annotations
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import functools
 import importlib.util
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from tasks.base import Task, TaskState
 from tasks.batching import CPU_GROUP
 from tasks.physics import (contacts_at_cap, forward, legacy_substeps, max_contacts_of, mjx,
                             put_model, substeps_from_pose, with_max_contacts)
+from tasks.render_scene import plain_scene, register_render_scene
 
 
 def load_suite_model(domain: str, max_contacts: int | None = None) -> mujoco.MjModel:
@@ -85,6 +87,7 @@ class DMControlTask(Task):
     domain = "dm_control"
     has_success = False
     cpu_group = CPU_GROUP  # batch 128: 1.7x (cheetah) to 3.6x (walker) the env steps/s
+    render_camera: str | None = None  # the model's camera a video shows; None: its first
 
     def __init__(self, model: mujoco.MjModel, control_timestep: float, time_limit: float,
                  contacts: str = "floor"):
@@ -95,6 +98,7 @@ class DMControlTask(Task):
         if contacts == "floor":
             model = floor_contacts_only(model)
         self.mj_model = model
+        register_render_scene(model, functools.partial(plain_scene, camera=self.render_camera))
         self.model = put_model(model)
         # opt.disableflags is static in MJX, so reset's actuation-free forward needs its own
         # model copy (built here: put_model inside a traced reset would leak tracers)

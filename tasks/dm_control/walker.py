@@ -1,24 +1,16 @@
-"""dm_control `walker` `walk` on MJX (dm_control/suite/walker.py).
+"""dm_control `walker` `walk` on MJX (dm_control/suite/walker.py), its walker.xml unchanged.
 
-Model: dm_control's walker.xml, unchanged (MJX supports everything it uses: capsules on a
-plane, slide/hinge joints with limits, motors, a subtreelinvel sensor).
+Observation (24), dm_control's order flattened as dmc2gym does: orientations (xx, xz of the 7
+bodies' xmat, 14), torso height (1), qvel (9). Reward: stand = (3 standing + upright) / 4,
+move = tolerance(torso subtree x velocity, (1, inf), margin 0.5, value 0.5, linear), reward =
+stand (5 move + 1) / 6. Control timestep 0.025 s = 10 substeps, 25 s -> 1000 steps. Reset:
+`rooty` uniform in [-pi, pi], limited hinges uniform in their range, zero velocity, an
+actuation-free forward, no settling (dm_control's distribution, jax.random's stream).
 
-Observation (24), in dm_control's OrderedDict order, flattened as dmc2gym does:
-  orientations (14) = xmat[1:, (xx, xz)] of the 7 bodies, row-major (body, component);
-  height (1)        = xpos['torso', z];
-  velocity (9)      = qvel.
-Reward: standing = tolerance(height, (1.2, inf), margin 0.6) (gaussian, value 0.1 at the
-margin); upright = (1 + xmat['torso', zz]) / 2; stand = (3 standing + upright) / 4;
-move = tolerance(torso subtree linear velocity x, (1, inf), margin 0.5, value_at_margin 0.5,
-linear); reward = stand * (5 move + 1) / 6.
-Control timestep 0.025 s = 10 physics substeps of 0.0025 s; time limit 25 s -> 1000 steps.
-
-Reset (randomizers.randomize_limited_and_rotational_joints): the unlimited hinge `rooty` is
-uniform in [-pi, pi], every limited hinge uniform in its range, the root slides stay at 0
-(torso at its XML height 1.3 m), velocities zero, then `mj_forward` with actuation disabled.
-No settling: like dm_control, an episode may start with a limb below the floor. The only
-difference is the random stream (jax.random instead of numpy's RandomState), so resets draw
-from the same distribution but a given seed does not give the same pose.
+Parity (`python -m benchmarks.dm_control_parity --tasks walker_walk`): same state, obs within
+1.8e-6, reward within 1.5e-7; same actions from dm_control's reset, return within 3.0e-5
+over 20 steps (chaos parts the trajectories after that); random-policy return 32.1 vs 32.4
+(10 episodes). Details: docs/ports/dm_control.md.
 """
 from __future__ import annotations
 

@@ -1,21 +1,13 @@
 """door-open-v3 (metaworld/envs/sawyer_door_v3.py, scene sawyer_door_pull.xml) on MJX.
 
-How metaworld's scripted solution moves (contact census, C MuJoCo): the claws hook the handle
-from the side and pull it round; the door stops when its panel meets the safe's side wall,
-at -1.82 rad (joint range [-2, 0]). Contacts (13 pairs): the 4 gripper geoms x the 3 handle
-cylinders of `door_link` (rod and the two grip cylinders, as capsules: MJX has no
-cylinder-box collision), and the door panel x the safe's side wall (the door stop).
-Removed: the rest of the safe, the wrist (6 contact steps in 3 episodes), the arm's geoms
-(sawyer.py). The observed handle pose is that of metaworld's visual mesh geom
-"handle", recomputed from `door_link`'s pose (the mesh itself is deleted).
+Contacts (13 pairs): the 4 gripper geoms x the 3 handle cylinders of `door_link` (as
+capsules), and the door panel x the safe's side wall (the door's stop). The observed handle
+pose is that of metaworld's visual mesh geom "handle", recomputed from `door_link`'s pose.
 
-Measured, `python -m benchmarks.metaworld_dynamics --tasks door_open` (metaworld's scripted
-policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four targets met.
-Return 4198 vs 4485 (x0.94), success at step 500 90% vs 100%, door down to -1.80 vs -1.82 rad
-(the panel-wall stop holds), hand-mocap 0.213 vs 0.189 m (x1.13); the free hand: x0.96, 95%,
-x1.04. Before the free hand kept metaworld's constraint weights (sawyer.py) its 6x stiffer
-weld pushed the door through that stop to -2.16 rad and past the success radius (success at
-step 500 0%); the first port, without the stop, reached -2.45.
+Parity (`python -m benchmarks.metaworld_dynamics --tasks door_open`, 20 episodes a side):
+return 4198 vs 4485 (x0.94), success at step 500 90% vs 100%, door down to -1.80 vs -1.82
+rad, hand-mocap x1.13: all four targets met. Same states: observation within 1.2e-6, reward
+within 1.6e-6. Details: docs/ports/metaworld.md.
 """
 from __future__ import annotations
 
@@ -23,7 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.metaworld import reward_utils as ru
-from tasks.metaworld.sawyer import SawyerTask, SceneSpec
+from tasks.metaworld.sawyer import SawyerTask
+from tasks.metaworld.scene import SceneSpec
+
+GOAL_OFFSET = (-0.3, -0.45, 0.0)  # target_pos - the door's placement
 
 
 class DoorOpen(SawyerTask):
@@ -53,7 +48,11 @@ class DoorOpen(SawyerTask):
 
     def _place(self, key, data):
         pos = self.sample_uniform(key, self.obj_low, self.obj_high)
-        return data, {"placement": pos, "target_pos": pos + jnp.array([-0.3, -0.45, 0.0])}
+        return data, {"placement": pos, "target_pos": pos + jnp.array(GOAL_OFFSET)}
+
+    @staticmethod
+    def goal_sites(data):
+        return {"goal": data.body("door").xpos + GOAL_OFFSET}
 
     def _objects(self, data):
         pos, mat = self.virtual_geom_pose(data, "handle")

@@ -1,29 +1,15 @@
 """door-unlock-v3 (metaworld/envs/sawyer_door_unlock_v3.py, sawyer_door_lock.xml) on MJX.
 
-Contacts: the 4 gripper geoms and the wrist x the lock lever box of `lock_link`: 5 pairs.
-The door (fixed in this scene) and safe are not on the scripted solution's path. In
-metaworld's own scripted episodes (contact census, C MuJoCo, 10 episodes) the lever touches
-nothing but the *wrist* (the gripper base's mesh on `right_hand`: 13259 contact steps) and
-swings far past its range ([0, 1.57]: down to -0.86). The wrist here is a convex hull of 32
-of the mesh's hull points (`wrist = 32`): with the box the hand trailed the mocap x0.68 of
-metaworld's (MJX, arm, 20 episodes), with the hull x1.04 (C MuJoCo); the MJX step runs at 609
-env steps/s at batch 64 (the box: 671 in a run earlier the same day).
+Contacts (5 pairs): the 4 gripper geoms and the wrist (a convex hull of 32 of the
+gripper-base mesh's points) x the lock lever box of `lock_link`; in metaworld's scripted
+episodes the lever touches nothing but the wrist. The door is fixed in this scene.
 
-The lever's upper excursion is a rare event, in metaworld too: in 12 of 100 of metaworld's
-own scripted episodes (seed 1) the lever passed its upper stop by more than 0.05 rad (up to
-3.00 rad). So "never beyond metaworld's own excursion over 20 episodes" fails whenever the
-port's 20 episodes hold a flip and metaworld's do not (metaworld's seed-0 episodes hold
-none); `above_range_share` in benchmarks/metaworld_dynamics.py reports how often it happens.
-
-Measured, `python -m benchmarks.metaworld_dynamics --tasks door_unlock` (metaworld's scripted
-policy, 500 steps, MJX port with metaworld's arm): 20 episodes a side (seed 0): return 4406 vs
-4433 (x0.99), success at step 500 100% vs 100%, first success at step 46 vs 43, hand-mocap
-0.116 vs 0.125 m (x0.93); the excursion target missed by that rare event (lever up to 2.96
-rad here, 1.64 in metaworld's 20). 100 episodes a side (`--episodes 100 --seed 1`): all four
-targets met; return x1.01, the lever past its upper stop in 13% of the port's episodes and
-12% of metaworld's (up to 2.43 and 3.00 rad), hand-mocap x0.94. The free hand with the box
-wrist: return x0.97, hand-mocap x0.51; without the wrist pair (claws only) the lever stayed
-in range but the claws unlocked it late (first success at step 103 vs 43, return x0.90).
+Parity (`python -m benchmarks.metaworld_dynamics --tasks door_unlock`): 20 episodes a side,
+return 4406 vs 4433 (x0.99), success at step 500 100% vs 100%, hand-mocap x0.93; the lever
+passing its upper stop is a rare event in metaworld too (12 of 100 episodes), so the
+excursion target misses over 20 episodes; over 100 (`--episodes 100 --seed 1`) all four
+targets are met (return x1.01, past the stop in 13% vs 12%). Same states: observation within
+1.1e-6, reward within 7.5e-6. Details: docs/ports/metaworld.md.
 """
 from __future__ import annotations
 
@@ -31,9 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.metaworld import reward_utils as ru
-from tasks.metaworld.sawyer import SawyerTask, SceneSpec
+from tasks.metaworld.sawyer import SawyerTask
+from tasks.metaworld.scene import SceneSpec
 
 LOCK_LENGTH = 0.1
+GOAL_OFFSET = (0.1, -0.04, 0.0)  # target_pos - the lock's position at reset
 
 
 class DoorUnlock(SawyerTask):
@@ -66,7 +54,13 @@ class DoorUnlock(SawyerTask):
 
     def _after_forward(self, data, info):
         obj_init = data.xpos[self.mj_model.body("lock_link").id]
-        return dict(info, obj_init_pos=obj_init, target_pos=obj_init + jnp.array([0.1, -0.04, 0.0]))
+        return dict(info, obj_init_pos=obj_init, target_pos=obj_init + jnp.array(GOAL_OFFSET))
+
+    @staticmethod
+    def goal_sites(data):
+        # metaworld puts the lock's marker out of sight
+        return {"goal_unlock": data.body("lock_link").xpos + GOAL_OFFSET,
+                "goal_lock": (10.0, 10.0, 10.0)}
 
     def _objects(self, data):
         return self.site_pos(data, "lockStartUnlock"), data.xquat[self.mj_model.body("door_link").id]

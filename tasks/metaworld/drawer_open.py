@@ -1,19 +1,13 @@
-"""drawer-open-v3 (metaworld/envs/sawyer_drawer_open_v3.py) on MJX.
+"""drawer-open-v3 (metaworld/envs/sawyer_drawer_open_v3.py, sawyer_drawer.xml) on MJX.
 
-Contacts: the 4 gripper geoms x the 3 handle capsules of `drawer_link` (12 pairs). In
-metaworld's own scripted episodes (contact census, C MuJoCo) the claws and pads touch only the
-middle handle capsule (and the wrist, 24 steps in 3 episodes); the drawer box, case, table
-and walls are never touched, so their contacts are dropped. The drawer stops on its joint
-limit alone, which the push overpowers in metaworld too (-0.203; range [-0.16, 0]).
-The arm keeps its joints and inertias, not its geoms (sawyer.py).
+Contacts: the 4 gripper geoms x the 3 handle capsules of `drawer_link` (12 pairs); the drawer
+stops on its soft joint limit alone, as in metaworld. Reward, success and the 39-D
+observation are metaworld's (drawer handle at `drawer_link` - 0.16 y).
 
-Measured, `python -m benchmarks.metaworld_dynamics --tasks drawer_open` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four
-targets met. Return 4031 vs 4049 (x1.00), success at step 500 100% vs 100%, drawer out to
--0.2026 vs -0.2026, hand-mocap 0.086 vs 0.086 m (x1.00); the free hand met them too (x1.00,
-x0.98). Before the free hand kept metaworld's constraint weights (sawyer.py)
-the free hand's 6x stiffer weld dragged the drawer to -0.262, past the success radius
-(success at step 500 0%, return x0.80).
+Parity (`python -m benchmarks.metaworld_dynamics --tasks drawer_open`, metaworld's scripted
+policy, 20 episodes a side): return 4031 vs 4049 (x1.00), success at step 500 100% vs 100%,
+drawer out to -0.2025 vs -0.2025, hand-mocap x1.00: all four targets met. Same states:
+observation within 1.1e-6, reward within 6.7e-6. Details: docs/ports/metaworld.md.
 """
 from __future__ import annotations
 
@@ -21,9 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.metaworld import reward_utils as ru
-from tasks.metaworld.sawyer import SawyerTask, SceneSpec
+from tasks.metaworld.sawyer import SawyerTask
+from tasks.metaworld.scene import SceneSpec
 
 MAX_DIST = 0.2
+GOAL_OFFSET = (0.0, -0.16 - MAX_DIST, 0.09)  # target_pos - obj_init_pos
 
 
 class DrawerOpen(SawyerTask):
@@ -43,9 +39,13 @@ class DrawerOpen(SawyerTask):
 
     def _place(self, key, data):
         obj_init_pos = self.sample_uniform(key, self.obj_low, self.obj_high)
-        target = obj_init_pos + jnp.array([0.0, -0.16 - MAX_DIST, 0.09])
+        target = obj_init_pos + jnp.array(GOAL_OFFSET)
         return data, {"placement": obj_init_pos, "obj_init_pos": obj_init_pos,
                       "target_pos": target}
+
+    @staticmethod
+    def goal_sites(data):
+        return {"goal": data.body("drawer").xpos + GOAL_OFFSET}
 
     def _objects(self, data):
         link = self.mj_model.body("drawer_link").id

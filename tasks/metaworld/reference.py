@@ -72,6 +72,17 @@ def make_env(task: str, seed: int = 0, partially_observable: bool = True):
     return env
 
 
+# scripted policies that steer by the goal slots obs[36:39] (metaworld runs its policies on
+# goal-observable envs); with the default hidden goal they head for (0, 0, 0). For these the
+# policy is given the goal: metaworld env built goal-observable, port obs filled from info.
+POLICY_READS_GOAL = ("sweep_into",)
+
+
+def policy_env(name: str, seed: int):
+    """The metaworld env whose observations the scripted policy is run on."""
+    return make_env(name, seed=seed, partially_observable=name not in POLICY_READS_GOAL)
+
+
 def scripted_policy(task: str):
     """metaworld's scripted policy for the task (metaworld.policies)."""
     from metaworld import policies

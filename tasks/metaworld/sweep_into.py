@@ -1,63 +1,16 @@
 """sweep-into-v3 (metaworld/envs/sawyer_sweep_into_goal_v3.py, sawyer_table_with_hole.xml).
 
-The puck (`obj`, a 4 cm box on a free joint) must be pushed into the hole in the table at
-the fixed goal (0, 0.84). Contacts, all box-box (each kind occurs in metaworld's own
-scripted-policy episodes: contact census of 4 goal-observable scripted episodes on C MuJoCo):
-  * 4 gripper geoms x the puck (4 pairs): the gripper cages and pushes it;
-  * 4 gripper geoms x the 4 table-top slabs around the hole (16 pairs): the scripted policy
-    lowers the hand to puck height + 1 cm, so the fingers rest on the table top (its top is
-    at z = 0.05) while sweeping; without these pairs the fingers would sink 4 cm below
-    the surface and the hand height, the caging terms and the push would all differ;
-  * the puck x the same 4 slabs (4 pairs): it slides on them and starts on the centre strip
-    or one of the side slabs (x up to +-0.1, the centre strip ends at +-0.08);
-  * the puck x the big table block under the slabs (1 pair): it is the floor of the hole,
-    where the puck comes to rest (z = 0.02) after falling in.
-  * the puck x the room's floor (1 pair; metaworld's plane at z = -0.913 as a 20 x 20 m box):
-    a puck pushed off the table lands there, as in metaworld (tested).
-The lower inner table block (top at z = -0.053) is never reached (the big block covers it):
-dropped. The wrist geom (`right_hand`'s mesh, which collides in metaworld) never touched
-anything in the census: it has no pair here.
+The puck (`obj`, a 4 cm box on a free joint) must be pushed into the table's hole at the
+fixed goal (0, 0.84). Contacts, all box-box: the 4 gripper geoms x the puck and x the 4
+table-top slabs around the hole; the puck x those slabs, x the hole's floor and x the room's
+floor (a puck pushed off the table lands there, as in metaworld). Reset: the puck's x, y
+drawn away from the goal as metaworld does, at the height and orientation it settles to
+during the hand reset.
 
-Reset: metaworld's `reset_model` draws the puck's x, y (rejecting draws within 0.15 of the
-goal in x-y; the goal half of the random vector is unused, the goal is fixed) and moves the
-puck there at the height it settled to during `_reset_hand` (the XML puts it 3 cm inside
-the table top, the hand reset pushes it up to z ~ 0.07), keeping that settled orientation,
-velocities zero. We take that settled height/orientation from our own hand-settling run
-(z = 0.0699681, identical to metaworld's to 7 digits).
-
-Measured closed loop, `python -m benchmarks.metaworld_dynamics --tasks sweep_into`
-(metaworld's scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm):
-all four targets met. Return 2083 vs 2160 (x0.96), success at step 500 30% vs 35%, first
-success at step 55 vs 56, hand-mocap 0.071 vs 0.072 m (x1.00); the puck has no joint range.
-metaworld's own policy fails often (6 of its episodes traced, C MuJoCo): in 3 the puck
-overshoots the goal into the far corner of the hole (-0.06, 0.90; the target radius is 5 cm)
-and the hand jams against the hole's far wall 11 cm short of the mocap; in 2 the fingers
-press the puck into the table top and the policy drags it back; 1 succeeds. It takes the
-arm's inertia and joint damping to do the same: the free hand (`arm=False`) followed the
-mocap into the hole and put the puck on the goal every time (return x2.12, success 100%,
-hand-mocap x0.10), with or without metaworld's constraint weights.
-
-These 20-episode numbers are one sample of a chaotic process: the return's SD is 1650-1850,
-so the mean's standard error is about 19%, and rounding alone changes the sample: adding the
-floor pair (never touched by these episodes) changes them from step 2-14 on by 1e-11 to 2e-7
-at first, with the same actions, and the 20-episode return read x1.17 with it (2026-12-03,
-another machine) where it had read x0.96 without. With 100 episodes a side
-(`--tasks sweep_into --episodes 100 --seed 1` -> `metaworld_dynamics_sweep_into_100.csv`), the
-floor kept: return 1933 vs 2085 (x0.93), success at step 500 27% vs 31%, hand-mocap 0.081 vs
-0.080 m (x1.01): all four targets met; the scene before the floor pair, the same 100
-episodes: 1915 (x0.92), 26%, 0.081 m.
-
-Found in a SAC run's replay (the reward lab's dataset, 100 episodes): in 3 episodes the hand
-moved 5-8 cm in one step (the 99.9th percentile of a step is 1.6-2.0 cm) and in one it threw
-the puck off the table at about 6 m/s. Not a port artefact: metaworld's own env, set to the
-recorded states and given the recorded actions, makes the same steps. Measured on the 67
-training episodes (`python -m benchmarks.metaworld_state_replay --task sweep_into` ->
-`metaworld_state_replay.csv`): 9 steps over 3 cm in 2 episodes, each within 3.6 mm of
-metaworld's own step from the same state (0.0544 vs 0.0544 m, 0.0777 vs 0.0774 m), with the
-mocap 19-40 cm ahead of a hand held back by the table or puck, whose weld then swings the arm;
-on 200 random steps the next hand position differs from metaworld's by 1.3e-5 m (median),
-2.4 mm at most. Before the floor pair the thrown puck fell without end (z = -32.5 m by step
-500) where metaworld's lands on its floor.
+Parity (`python -m benchmarks.metaworld_dynamics --tasks sweep_into`): 20 episodes a side,
+return 2358 vs 2160 (x1.09), success at step 500 40% vs 35%, hand-mocap x0.93; 100 episodes
+(`--episodes 100 --seed 1`): x0.93, 27% vs 31%, x1.01; all four targets met. Same states:
+observation within 1.2e-6, reward within 8.2e-6. Details: docs/ports/metaworld.md.
 """
 from __future__ import annotations
 
@@ -66,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.metaworld import reward_utils as ru
-from tasks.metaworld.sawyer import SawyerTask, SceneSpec
+from tasks.metaworld.sawyer import SawyerTask
+from tasks.metaworld.scene import SceneSpec
 
 OBJ_RADIUS = 0.02
 TARGET_RADIUS = 0.05
@@ -134,6 +88,10 @@ class SweepInto(SawyerTask):
         qvel = data.qvel.at[v:v + 6].set(0.0)  # _set_obj_xyz zeroes qvel[9:15]
         return data.replace(qpos=qpos, qvel=qvel), {"obj_init_pos": obj_init,
                                                     "target_pos": goal}
+
+    @staticmethod
+    def goal_sites(data):
+        return {"goal": GOAL}
 
     def _objects(self, data):
         # get_body_com("obj") is xpos; the orientation is scipy's quaternion of objGeom's xmat

@@ -1,31 +1,15 @@
 """window-open-v3 (metaworld/envs/sawyer_window_open_v3.py, sawyer_window_horizontal.xml).
 
-How metaworld's scripted solution moves (contact census, C MuJoCo): the hand comes down by
-the handle and pushes it sideways (+x) with the *wrist* and the left claw; the sliding pane
-stops when its stile meets the frame's side post (slide 0.203; joint range [0, 0.2]).
-Contacts (16 pairs): the 4 gripper geoms x the 3 handle capsules of the sliding pane
-`windowb_a` (12), the wrist (a convex hull of 32 of the gripper-base mesh's points, see
-sawyer.py) x the same 3 capsules, and the pane's stile x the frame post (the end stop).
-Removed: glass, the fixed pane and the rest of the frame (off the solution's path), the
-arm's geoms (sawyer.py).
-The first port (claws x handle only) let the hand ride over the handle after the push and
-drag the pane back: success at step 500 25% against metaworld's 100%.
+Contacts (16 pairs): the 4 gripper geoms and the wrist (a convex hull of 32 of the
+gripper-base mesh's points) x the 3 handle capsules of the sliding pane `windowb_a`, and the
+pane's stile x the frame post (its end stop). metaworld's reset quirk is kept: the reach
+reward's margin reads the handle where the *previous* random placement put it, so a second
+placement is drawn from the same range for it.
 
-Measured, `python -m benchmarks.metaworld_dynamics --tasks window_open` (metaworld's
-scripted policy, 20 episodes a side, 500 steps, MJX port with metaworld's arm): all four
-targets met. Return 2217 vs 2219 (x1.00), success at step 500 100% vs 100%, slide max 0.2032
-vs 0.2033, hand-mocap 0.134 vs 0.159 m (x0.84). With the wrist box they were met too (x0.99,
-hand-mocap x1.01), but metaworld's own mocap path replayed open loop
-(`python -m benchmarks.metaworld_mocap_replay --tasks window_open`) left the box-wristed hand
-14 cm from metaworld's after the push, against 5.4 mm with the hull; the hull costs 4% of the
-step rate (1166 vs 1219 env steps/s at batch 64, `benchmarks.metaworld_throughput --tasks
-window_open [--wrist box]`). The free hand met the four targets too (x1.00; before it kept
-metaworld's constraint weights, sawyer.py, its hand-mocap was x0.20).
-
-Reset quirk kept on purpose: metaworld computes `window_handle_pos_init` (the margin of the
-reach reward) right after moving the window *without* a forward pass, so it reads the
-handle where the *previous* random placement put it (reset_model runs twice per reset, each
-drawing a placement). We draw that placement independently from the same range too.
+Parity (`python -m benchmarks.metaworld_dynamics --tasks window_open`, 20 episodes a side):
+return 2216 vs 2219 (x1.00), success at step 500 100% vs 100%, slide max 0.2030 vs 0.2033,
+hand-mocap x0.84: all four targets met. Same states: observation within 1.2e-6, reward
+within 2.2e-6. Details: docs/ports/metaworld.md.
 """
 from __future__ import annotations
 
@@ -34,9 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.metaworld import reward_utils as ru
-from tasks.metaworld.sawyer import SawyerTask, SceneSpec
+from tasks.metaworld.sawyer import SawyerTask
+from tasks.metaworld.scene import SceneSpec
 
 TARGET_RADIUS = 0.05
+GOAL_OFFSET = (0.2, 0.0, 0.0)  # target_pos - the window's placement
 
 
 class WindowOpen(SawyerTask):
@@ -76,8 +62,12 @@ class WindowOpen(SawyerTask):
         pos = self.sample_uniform(k1, self.obj_low, self.obj_high)
         stale = self.sample_uniform(k2, self.obj_low, self.obj_high)
         return data, {"placement": pos, "obj_init_pos": pos,
-                      "target_pos": pos + jnp.array([0.2, 0.0, 0.0]),
+                      "target_pos": pos + jnp.array(GOAL_OFFSET),
                       "handle_pos_init": stale + self._handle_offset}
+
+    @staticmethod
+    def goal_sites(data):
+        return {"goal": data.body("window").xpos + GOAL_OFFSET}
 
     def _objects(self, data):
         return self.site_pos(data, "handleOpenStart"), jnp.zeros(4)

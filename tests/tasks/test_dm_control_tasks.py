@@ -2,8 +2,10 @@
 
 Fast tests compile two physics programs per task (a vmapped reset and one
 jit(vmap(scan(step))) rollout shared by the shape and parity tests); `-m slow` adds MJX
-forward parity on dm_control states, reset-observation parity and longer horizons. Tolerances are float32 MJX vs float64 MuJoCo (see benchmarks/dm_control_parity.py:
-in float64 MJX the quadruped stays within 1e-7 of dm_control's qpos over 100 steps).
+forward parity on dm_control states, reset-observation parity and longer horizons.
+Tolerances are float32 MJX vs float64 MuJoCo (helpers: tasks/dm_control/reference.py;
+numbers: docs/ports/dm_control.md; in float64 MJX the quadruped stays within 1e-7 of
+dm_control's qpos over 100 steps).
 """
 import jax
 import jax.numpy as jnp
@@ -11,8 +13,8 @@ import numpy as np
 import pytest
 
 import tasks
+from tasks.dm_control import reference as parity
 from tasks.physics import mjx
-from benchmarks import dm_control_parity as parity
 
 TASKS = ["cheetah_run", "walker_walk", "quadruped_walk"]
 B, T = 2, 20  # shared rollout shape: one compile per task

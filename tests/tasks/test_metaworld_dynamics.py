@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import tasks
-from benchmarks.metaworld_dynamics import (TASKS, make_task, run_metaworld, run_port,
-                                           run_port_c, targets)
-from tasks.metaworld.sawyer import load_full_model
+from tasks.metaworld.closed_loop import (TASKS, make_task, run_metaworld, run_port,
+                                         run_port_c, targets)
+from tasks.metaworld.scene import load_full_model
 
 STEPS = 100  # button_press: the press happens at steps ~50-70
 
@@ -113,7 +113,7 @@ def test_closed_loop_targets(name):
 def test_each_reset_keeps_its_own_placement():
     """`info_from_metaworld` copies the placement: it once returned a view of metaworld's
     model, so every recorded episode of a replay got the last reset's placement."""
-    from benchmarks.metaworld_parity import policy_env
+    from tasks.metaworld.reference import policy_env
 
     task, env = tasks.make("door_unlock"), policy_env("door_unlock", 0)
     placements = []

@@ -5,7 +5,6 @@ import statistics
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -95,7 +94,7 @@ def test_reset_is_deterministic_per_key():
 def test_reward_success_obs_parity_with_metaworld(name):
     """A handful of metaworld states (scripted policy + noise, incl. successful ones) loaded
     into the port give the same 18 observation values, reward and success flag."""
-    from benchmarks.metaworld_parity import reward_parity
+    from tasks.metaworld.parity import reward_parity
 
     task = tasks.make(name)
     res = reward_parity(task, name, n_episodes=1, steps=60, noise=0.1)
@@ -112,7 +111,7 @@ def test_a_puck_pushed_off_the_table_lands_on_metaworlds_floor():
 
     import mujoco
 
-    from benchmarks.metaworld_parity import policy_env
+    from tasks.metaworld.reference import policy_env
 
     def land(model, data, qpos):
         mujoco.mj_resetData(model, data)
@@ -162,9 +161,9 @@ def test_contact_cap_keeps_every_active_contact():
 def test_kinematics_speed_guard():
     """jit(mjx.kinematics) on metaworld's *unchanged* drawer scene (14-deep arm) must take
     < 25 ms; without XLA_FLAGS=--xla_cpu_use_fusion_emitters=false it takes ~0.5 s. (Steady
-    state with the flag: 3.8-5.2 ms on one CI machine, 5.0-7.0 ms on another on 2026-12-01;
+    state with the flag: 3.8-5.2 ms on one CI machine, 5.0-7.0 ms on another;
     the bound sits between that spread and the regression it guards against.)"""
-    from tasks.metaworld.sawyer import load_full_model
+    from tasks.metaworld.scene import load_full_model
     from tasks.physics import put_model
 
     model = put_model(load_full_model("sawyer_drawer.xml"))
@@ -186,7 +185,7 @@ def test_kinematics_speed_guard():
 @pytest.mark.parametrize("name", PORTED)
 def test_scripted_policy_solves_port(name):
     """metaworld's scripted policy, closed loop on the port, succeeds on most resets."""
-    from benchmarks.metaworld_parity import scripted_success
+    from tasks.metaworld.parity import scripted_success
 
     res = scripted_success(tasks.make(name), name, episodes=4, batch=4)
     assert res["port_success_rate"] >= 0.75, res
