@@ -8,6 +8,7 @@ import shutil
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.test_labelling import folder  # noqa: F401  (the fixture: three cheetah queries)
@@ -100,3 +101,46 @@ def test_a_person_labels_in_a_browser(server, browser):
     browser.refresh()
     _wait(lambda: "2 of 3 answered" in browser.find_element(By.ID, "progress").text)
     assert "r1-q0002" in browser.find_element(By.ID, "where").text
+
+
+@pytest.fixture()
+def drawer_server(tmp_path):
+    """Two drawer_open segments (the drawer closed / pulled out) as a query folder."""
+    import mujoco
+
+    import tasks
+    from hprior_jax.labelling.server import BackgroundServer, ServerOptions
+    from hprior_jax.labelling.store import QueryFolder, write_queries
+
+    model = tasks.make("drawer_open").mj_model
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    slide = model.jnt_qposadr[model.joint("goal_slidey").id]
+
+    def segment(pull: float, steps: int = 4) -> dict:
+        qpos = np.repeat(data.qpos[None], steps, axis=0)
+        qpos[:, slide] = np.linspace(0, pull, steps)
+        return {"qpos": qpos, "qvel": np.zeros((steps, model.nv)),
+                "mocap_pos": np.repeat(data.mocap_pos[None], steps, axis=0),
+                "mocap_quat": np.repeat(data.mocap_quat[None], steps, axis=0)}
+
+    write_queries(tmp_path / "q", "drawer_open", 1, [(segment(-0.15), segment(0.0))], fps=20.0)
+    folder = QueryFolder(tmp_path / "q")
+    srv = BackgroundServer(folder, ServerOptions(port=0))
+    yield srv.url, folder
+    srv.close()
+
+
+def test_a_person_labels_a_metaworld_pair(drawer_server, browser):
+    from selenium.webdriver.common.by import By
+
+    url, folder = drawer_server
+    browser.get(url)
+    _wait(lambda: "drawer_open" in browser.find_element(By.ID, "where").text)
+    assert browser.find_element(By.ID, "goal").text == "Goal: Pull the drawer open."
+    _wait(lambda: _playing(browser, "left") and _playing(browser, "right"))
+    left_button = browser.find_element(By.CSS_SELECTOR, "[data-answer=left]")
+    _wait(left_button.is_enabled)
+    left_button.click()
+    _wait(lambda: folder.answers())
+    assert folder.answers()["r1-q0000"]["answer"] == "left"
