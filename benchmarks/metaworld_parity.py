@@ -25,7 +25,8 @@ import time
 import numpy as np
 
 from tasks.metaworld.parity import drift, reward_parity, scripted_success
-from tasks.metaworld.reference import metaworld_version, policy_env, scripted_policy
+from tasks.metaworld.reference import (explore_action, metaworld_version, policy_env,
+                                      scripted_policy)
 
 TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_parity.csv")
@@ -42,10 +43,7 @@ def collect_metaworld_states(name: str, n_episodes: int, steps: int, seed: int, 
         obs, _ = env.reset()
         random_ep = ep % 2 == 1
         for t in range(steps):
-            if random_ep:
-                action = rng.uniform(-1, 1, 4)
-            else:
-                action = np.clip(policy.get_action(obs) + noise * rng.standard_normal(4), -1, 1)
+            action = explore_action(policy, obs, rng, noise, random_ep)
             obs, reward, _, _, info = env.step(action)
             rows.append(dict(state=snapshot(env), obs=obs.copy(), action=action.astype(np.float32),
                              reward=float(reward), success=float(info["success"])))

@@ -1,4 +1,5 @@
-"""`hprior train`: a new run or a resumed one; the SIGINT handler is in place before JAX loads."""
+"""`hprior train`: a new run or a resumed one; the SIGINT handler is in place before the
+configuration is checked or the engine built."""
 from __future__ import annotations
 
 import argparse
@@ -25,7 +26,7 @@ def train(argv: list[str]) -> int:
     known, rest = pre.parse_known_args(argv)
     help_asked = "-h" in rest or "--help" in rest
 
-    from hprior_jax.loop.stopping import StopRequest  # light: before JAX's own imports
+    from hprior_jax.loop.stopping import StopRequest  # before any checking or compiling
 
     # Ctrl-C from here on is a request, never an exception inside JAX's callbacks: before
     # anything is written it ends the command; after, the run checkpoints and stops

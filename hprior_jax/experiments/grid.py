@@ -15,13 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hprior_jax import dir_lock, envs, presets
-from hprior_jax.checkpoint import Checkpointer
 from hprior_jax.config import RunConfig, differing_fields
 from hprior_jax.loop import devices as seed_devices
 from hprior_jax.loop import host
+from hprior_jax.loop.run_files import latest_checkpoint_step
 from hprior_jax.methods import registry
 from hprior_jax.runs import build
-from hprior_jax.runs.build import build_engine
 from hprior_jax.runs.run_dir import load_run_config, prepare_run_dir
 
 PAPER_SEEDS = (12345, 23456, 34567, 45678, 56789)  # appendix E
@@ -70,17 +69,6 @@ def run_status(cfg: RunConfig) -> str:
             "another grid directory (--out) or the grid options that made it")
     latest = latest_checkpoint_step(run_dir)
     return "complete" if latest is not None and latest >= cfg.steps else "interrupted"
-
-
-def latest_checkpoint_step(run_dir: Path) -> int | None:
-    """The step of `run_dir`'s last checkpoint (None: none yet)."""
-    if not (Path(run_dir) / "checkpoints").exists():
-        return None
-    ckpt = Checkpointer(Path(run_dir) / "checkpoints")
-    try:
-        return ckpt.latest_step()
-    finally:
-        ckpt.close()
 
 
 def _jsonable(obj):
@@ -221,7 +209,7 @@ def calibrate(cfg: RunConfig, devices) -> float:
     persistent cache when the run starts)."""
     import jax
 
-    engine = build_engine(cfg, devices)
+    engine = build.build_engine(cfg, devices)
     seeds = list(cfg.seeds)
 
     def seconds(program) -> float:

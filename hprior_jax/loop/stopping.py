@@ -1,6 +1,6 @@
 """How a run stops early: Ctrl-C (after the chunk in flight, with a checkpoint), a person's
-round that stops waiting, a loss that is no longer finite. Light to import: the command line
-installs the Ctrl-C handler before it loads JAX."""
+round that stops waiting, a loss that is no longer finite. `hprior train` installs the Ctrl-C
+handler first, before it checks the configuration or builds the engine."""
 from __future__ import annotations
 
 import signal

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.base import TaskState
-from tasks.metaworld.reference import POLICY_READS_GOAL, policy_env, scripted_policy
+from tasks.metaworld.reference import (POLICY_READS_GOAL, explore_action, policy_env,
+                                      scripted_policy)
 from tasks.physics import mjx
 
 
@@ -43,10 +44,7 @@ def reward_parity(task, name: str, n_episodes: int = 6, steps: int = 150, seed: 
         info = {k: jnp.asarray(v, jnp.float32) for k, v in task.info_from_metaworld(env).items()}
         random_ep = ep % 3 == 2
         for _ in range(steps):
-            if random_ep:
-                action = rng.uniform(-1, 1, 4)
-            else:
-                action = np.clip(policy.get_action(obs) + noise * rng.standard_normal(4), -1, 1)
+            action = explore_action(policy, obs, rng, noise, random_ep)
             prev = obs[:18].copy()
             obs, reward, _, _, minfo = env.step(action)
             datas.append(task.data_from_metaworld(env))

@@ -96,3 +96,11 @@ def scripted_policy(task: str):
         "sweep_into": "SawyerSweepIntoV3Policy",
     }
     return getattr(policies, names[task])()
+
+
+def explore_action(policy, obs, rng: np.random.Generator, noise: float, random: bool):
+    """An action of the states the parity checks visit: uniform in [-1, 1]^4 (a random
+    episode), or metaworld's scripted action with Gaussian noise, clipped."""
+    if random:
+        return rng.uniform(-1, 1, 4)
+    return np.clip(policy.get_action(obs) + noise * rng.standard_normal(4), -1, 1)
