@@ -30,8 +30,8 @@ class Evaluation:
 
 def train(config: RunConfig, callbacks: tuple[Callable[[Evaluation], bool | None], ...] = (),
           progress: bool = True) -> Path:
-    """Trains `config` (e.g. `hprior_jax.presets.train_preset("cheetah_run", "prior",
-    "smoke", out="runs/x")`) into a new run directory and returns its path. Each callback
+    """Trains `config` (e.g. `hprior_jax.presets.train_preset(task, algo, preset, out=...)`)
+    into a new run directory and returns its path. Each callback
     gets an `Evaluation` after every evaluation; one returning True stops the run there,
     checkpointed (`hprior train --resume DIR` continues it)."""
     run_dir = prepare_run_dir(config)
