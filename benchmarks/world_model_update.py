@@ -12,8 +12,10 @@ compile timed apart. Sizes: `paper` = the appendix/TWM defaults (10 layers x 256
 layers, one seed at a time), started from the same weights: the script first checks that both
 give the same deterministic loss and gradient norm, then times each. The roofline columns say how
 close the update runs to what the device sustains on large matmuls. `--dropout-rng` times the
-dropout-mask PRNGs the config offers (rbg is the default; threefry was the default before).
-Writes benchmarks/results/world_model_update.csv.
+dropout bits the config offers (hash, the default; rbg; threefry). The credit rows time
+`prior.attention.pair_credit` (α of both segments of every stored pair: what each feedback
+round recomputes) for `--credit-pairs` stored pairs, one seed.
+Writes benchmarks/results/world_model_update.csv and world_model_credit.csv.
 """
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ from benchmarks._timing import (torch_wait, against_torch, available_memory_gib,
                                 write_rows, xla_gflop)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "world_model_update.csv"
+CREDIT_RESULTS = RESULTS.with_name("world_model_credit.csv")
 OBS, ACT, SEGMENT = 17, 6, 50
 
 
@@ -97,6 +100,26 @@ def jax_update_ms(size: str, n_seeds: int, n_updates: int, repeats: int,
             "layers": cfg.num_layers, "embed": cfg.embed_dim, "batch": cfg.batch_size}
 
 
+def credit_ms(size: str, pairs: int, repeats: int) -> float:
+    """ms of `pair_credit` over a store holding `pairs` pairs of random segments (one seed)."""
+    import jax
+
+    from hprior_jax.buffers import preferences
+    from hprior_jax.prior import world_model as wm
+    from hprior_jax.prior.attention import pair_credit
+
+    cfg = world_model_config(size)
+    store = preferences.init(SEGMENT, OBS, ACT, capacity=pairs)
+    k1, k2 = jax.random.split(jax.random.key(1))
+    store = store.replace(obs1=jax.random.normal(k1, store.obs1.shape),
+                          obs2=jax.random.normal(k2, store.obs2.shape),
+                          count=jax.numpy.asarray(pairs, jax.numpy.int32))
+    params = wm.init(jax.random.key(0), cfg).params
+    fn = jax.jit(lambda p, s: pair_credit(p, s, cfg)).lower(params, store).compile()
+    jax.block_until_ready(fn(params, store))
+    return 1e3 * best_seconds(lambda: fn(params, store), repeats, jax.block_until_ready)
+
+
 def torch_update_ms(size: str, n_updates: int, repeats: int) -> dict:
     """PyTorch update time, after checking it computes what the JAX update computes."""
     import jax
@@ -141,11 +164,13 @@ def main(argv=None) -> None:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", nargs="+", default=["reduced", "paper"], choices=["reduced", "paper"])
-    p.add_argument("--seeds", nargs="+", type=int, default=[1, 5])
+    p.add_argument("--seeds", nargs="*", type=int, default=[1, 5], help="(none: credit rows only)")
     p.add_argument("--updates", type=int, default=3, help="updates per timed run")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--dropout-rng", nargs="+", default=[None], choices=DROPOUT_RNGS,
                    help="PRNG of the dropout masks (default: the config's)")
+    p.add_argument("--credit-pairs", nargs="*", type=int, default=[100, 1000],
+                   help="stored pairs whose α the credit rows time (none: skip)")
     p.add_argument("--device", default="cpu", choices=["cpu", "gpu"])
     p.add_argument("--no-torch", action="store_true", help="skip the PyTorch reference")
     p.add_argument("--out", type=Path, default=RESULTS)
@@ -180,6 +205,13 @@ def main(argv=None) -> None:
             rows.append(row)
             print("  ".join(f"{k}={v}" for k, v in row.items() if k != "machine"), flush=True)
             write_rows(rows, args.out, kept)  # after every row: a later crash loses nothing
+        credit = [{"sizes": size, "pairs": n, "credit_ms": round(credit_ms(size, n, args.repeats), 1),
+                   "machine": machine()} for n in args.credit_pairs]
+        for row in credit:
+            print(f"{size}: α of {row['pairs']} stored pairs in {row['credit_ms']} ms", flush=True)
+        if credit:
+            credit_out = args.out.with_name(CREDIT_RESULTS.name)
+            write_rows(credit, credit_out, read_rows(credit_out) if args.append else [])
 
 
 if __name__ == "__main__":

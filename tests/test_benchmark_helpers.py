@@ -52,7 +52,7 @@ def test_write_rows_appends_to_kept_rows_with_new_columns(tmp_path):
 
 
 def test_op_profile_maps_xla_ops_to_their_jax_source():
-    from benchmarks.op_profile import op_sources, source_of
+    from benchmarks.op_profile import matmul_ops, op_class, op_sources, source_of
 
     hlo = ('  %fusion.3 = f32[4,8]{1,0} fusion(%p0), kind=kLoop, metadata={op_name='
            '"jit(run)/while/body/closed_call/transpose(jvp(Model))/layers/self_attn/bind,jnd->bnij/transpose" '
@@ -71,6 +71,11 @@ def test_op_profile_maps_xla_ops_to_their_jax_source():
     assert source_of(sources["fusion.3"]) == ("bwd", "bind,jnd->bnij/transpose")
     assert source_of(sources["rng.1"]) == ("fwd", "rng (dropout bits)")
     assert source_of("jit(run)/jvp(M)/layers/Dropout_0/select_n") == ("fwd", "dropout (apply mask)")
+    assert matmul_ops(hlo) == {"ynn_fusion.7", "dot.1"}  # a fusion holding a dot is a matmul
+    assert op_class(sources["fusion.3"], False) == "relative position (encodings, shift)"
+    assert op_class(sources["rng.1"], False) == "dropout bits"
+    assert op_class(sources["fusion.3"], True) == "matmuls"
+    assert op_class("jit(run)/vmap()/add", False) == "optimizer and glue"
 
 
 def _gpu_suite_tiny(out, parts, extra=()):

@@ -20,7 +20,9 @@ Memory: `mems[L, B, M, D]` holds each layer's *input* for M earlier tokens; the 
 last `mem_len` of concat(mems, layer inputs), under stop_gradient (TWM `.detach()`).
 
 The attention of every layer is an explicit output: attn[B, L, H, Tq, M + Tq].
-Layers run under `nn.scan` (one compiled layer body; params stacked on a leading L axis).
+Layers run under `nn.scan` (one compiled layer body; params stacked on a leading L axis), unrolled
+or not (`unroll_layers`). SiLU is computed through tanh and dropout masks from hashed bits by
+default (`networks.elementwise`: the same function and distribution, cheaper on XLA:CPU).
 """
 from __future__ import annotations
 
@@ -31,10 +33,12 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from hprior_jax.networks.elementwise import Dropout, DropoutBits, silu_tanh
+
 # PyTorch nn.Linear default init (TWM keeps it inside the transformer): U(±1/sqrt(fan_in)).
 torch_kernel_init = nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform")
 
-_ACT = {"silu": nn.silu, "relu": nn.relu, "gelu": nn.gelu}
+_ACT = {"silu": silu_tanh, "relu": nn.relu, "gelu": nn.gelu}
 
 
 def torch_bias_init(fan_in: int):
@@ -62,8 +66,10 @@ class TransformerXLConfig:
     norm_first: bool = False  # TWM is post-LN
     scale_by_model_dim: bool = True  # TWM quirk: 1/sqrt(embed_dim)
     layer_norm_eps: float = 1e-5
-    unroll_layers: bool = False  # unroll the layer scan (same arithmetic; XLA's cost analysis
-    #                              counts a loop body once, so FLOP counts need it unrolled)
+    # Unrolled layers: same arithmetic, no loop stacking each layer's activations for the
+    # backward pass (XLA's cost analysis also counts a loop body once, so FLOP counts need it).
+    unroll_layers: bool = False
+    dropout_bits: DropoutBits = "hash"  # see networks.elementwise.Dropout
 
     def __post_init__(self):
         if self.activation not in _ACT:
@@ -146,7 +152,7 @@ class RelativeMultiheadSelfAttention(nn.Module):
         score = (content + position) * scale
         score = jnp.where(mask[:, None], score, -jnp.inf)
         attn = jax.nn.softmax(score, axis=-1)
-        dropped = nn.Dropout(c.dropout)(attn, deterministic=self.deterministic)
+        dropped = Dropout(c.dropout, c.dropout_bits)(attn, self.deterministic)
         ctx = jnp.einsum("bnij,bjnd->bind", dropped, val).reshape(b, tq, hd)
         out = nn.Dense(d, use_bias=False, kernel_init=torch_kernel_init, name="out_proj")(ctx)
         return out, attn
@@ -162,7 +168,7 @@ class TransformerXLLayer(nn.Module):
     def __call__(self, x, mem, pos_enc, u, v, mask):
         c = self.cfg
         det = self.deterministic
-        drop = lambda y: nn.Dropout(c.dropout)(y, deterministic=det)
+        drop = lambda y: Dropout(c.dropout, c.dropout_bits)(y, det)
         ln1 = nn.LayerNorm(epsilon=c.layer_norm_eps, name="norm1")
         ln2 = nn.LayerNorm(epsilon=c.layer_norm_eps, name="norm2")
         attn_mod = RelativeMultiheadSelfAttention(c, det, name="self_attn")
@@ -209,7 +215,7 @@ class TransformerXL(nn.Module):
         u = self.param("u_bias", xavier, (c.num_heads, c.head_dim))
         v = self.param("v_bias", xavier, (c.num_heads, c.head_dim))
         pos_enc = sinusoid_encodings(jnp.arange(tk - 1, -1, -1), d)  # TWM positions src_len-1 .. 0
-        pos_enc = nn.Dropout(c.dropout)(pos_enc, deterministic=deterministic)
+        pos_enc = Dropout(c.dropout, c.dropout_bits)(pos_enc, deterministic)
         mask = jnp.broadcast_to(attention_mask(tq, m, c.window, key_mask), (b, tq, tk))
         Scan = nn.scan(TransformerXLLayer, variable_axes={"params": 0},
                        split_rngs={"params": True, "dropout": True},

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import optax
 
 from hprior_jax.buffers.episodes import segment_rows
+from hprior_jax.networks.elementwise import Dropout, DropoutBits, silu_tanh
 from hprior_jax.networks.transformer_xl import TransformerXL, TransformerXLConfig
 
 Params = Any
@@ -52,7 +53,7 @@ _relu_gain_init = nn.initializers.variance_scaling(2.0, "fan_in", "uniform")
 _linear_init = nn.initializers.variance_scaling(1.0, "fan_in", "uniform")
 
 
-DropoutRng = Literal["rbg", "threefry"]
+DropoutRng = Literal["hash", "rbg", "threefry"]
 DROPOUT_RNGS = get_args(DropoutRng)
 # fold_in tag of the world model's random stream (its init, updates and dropout), kept apart
 # from the run's stream so that λ = 0 draws exactly PEBBLE's numbers
@@ -60,8 +61,9 @@ RANDOM_STREAM = 0x574D
 
 
 def dropout_key(key: jax.Array, impl: str) -> jax.Array:
-    """The dropout key in the PRNG implementation `impl` ("rbg": seeded from `key`'s bits)."""
-    if impl == "threefry":
+    """The dropout key in the PRNG implementation `impl` ("rbg": seeded from `key`'s bits;
+    "hash" hashes bits drawn from `key` itself)."""
+    if impl in ("threefry", "hash"):
         return key
     return jax.random.wrap_key_data(jax.random.bits(key, (4,), jnp.uint32), impl=impl)
 
@@ -95,12 +97,15 @@ class WorldModelConfig:
     dyn_grad_clip: float = 100.0
     latent_coef: float = 1.0
     next_obs_coef: float = 1.0
-    unroll_layers: bool = False  # see TransformerXLConfig.unroll_layers
-    # Dropout masks from XLA's RngBitGenerator ("rbg") instead of threefry: a dynamics update
-    # measured 11% faster at the reduced size with 5 seeds (541 -> 483 ms) and 10% at the paper
-    # size (7.38 -> 6.65 s, 1 seed) on a 2-core CPU (benchmarks/results/world_model_update.csv).
-    # Same distribution, other random stream; "threefry" gives the masks of the key itself.
-    dropout_rng: DropoutRng = "rbg"
+    # Unrolled layers: a dynamics update measured 1.27x faster than under the layer scan at
+    # the paper size and 1.13x at the reduced one (benchmarks/results/world_model_update.csv);
+    # compiling takes about twice as long at the paper size.
+    unroll_layers: bool = True
+    # Where dropout's random bits come from (the same Bernoulli masks in distribution; each a
+    # different random stream): "hash" (networks.elementwise.Dropout) fuses them into the op
+    # that applies the mask; "rbg" (XLA's RngBitGenerator) and "threefry" (the key itself)
+    # write them to memory first. benchmarks/results/world_model_update.csv times all three.
+    dropout_rng: DropoutRng = "hash"
 
     def __post_init__(self):
         if self.obs_size < 1 or self.act_size < 1:
@@ -118,7 +123,12 @@ class WorldModelConfig:
             num_layers=self.num_layers, ff_dim=self.ff_dim, dropout=self.dropout,
             activation="silu", mem_len=2 * self.memory_len + 2,
             window=2 * (self.memory_len + 1), norm_first=False,
-            scale_by_model_dim=self.scale_by_model_dim, unroll_layers=self.unroll_layers)
+            scale_by_model_dim=self.scale_by_model_dim, unroll_layers=self.unroll_layers,
+            dropout_bits=self.dropout_bits)
+
+    @property
+    def dropout_bits(self) -> DropoutBits:
+        return "hash" if self.dropout_rng == "hash" else "key"
 
 
 class MLP(nn.Module):
@@ -128,15 +138,16 @@ class MLP(nn.Module):
     out_dim: int
     pre_activation: bool = False
     dropout: float = 0.0
+    dropout_bits: DropoutBits = "hash"
 
     @nn.compact
     def __call__(self, x, deterministic: bool = True):
         if self.pre_activation:
-            x = nn.silu(x)
+            x = silu_tanh(x)
         for w in self.hidden:
-            x = nn.silu(nn.Dense(w, kernel_init=_relu_gain_init, bias_init=nn.initializers.zeros)(x))
+            x = silu_tanh(nn.Dense(w, kernel_init=_relu_gain_init, bias_init=nn.initializers.zeros)(x))
             if self.dropout > 0:
-                x = nn.Dropout(self.dropout)(x, deterministic=deterministic)
+                x = Dropout(self.dropout, self.dropout_bits)(x, deterministic)
         return nn.Dense(self.out_dim, kernel_init=_linear_init, bias_init=nn.initializers.zeros)(x)
 
 
@@ -169,12 +180,13 @@ class DynamicsModel(nn.Module):
     def __call__(self, z, act, mems=None, key_mask=None, deterministic: bool = True):
         c = self.cfg
         b, t, _ = z.shape
-        ez = nn.silu(nn.Dense(c.embed_dim, kernel_init=_relu_gain_init, name="z_embed")(z))
-        ea = nn.silu(nn.Dense(c.embed_dim, kernel_init=_relu_gain_init, name="a_embed")(act))
+        ez = silu_tanh(nn.Dense(c.embed_dim, kernel_init=_relu_gain_init, name="z_embed")(z))
+        ea = silu_tanh(nn.Dense(c.embed_dim, kernel_init=_relu_gain_init, name="a_embed")(act))
         tokens = jnp.stack([ez, ea], axis=2).reshape(b, 2 * t, c.embed_dim)
         h, new_mems, attn = TransformerXL(c.transformer(), name="transformer")(
             tokens, mems, key_mask, deterministic)
-        head = MLP(c.head_hidden, c.latent_dim, pre_activation=True, dropout=c.dropout, name="z_head")
+        head = MLP(c.head_hidden, c.latent_dim, pre_activation=True, dropout=c.dropout,
+                   dropout_bits=c.dropout_bits, name="z_head")
         return head(h[:, 1::2], deterministic), new_mems, attn
 
 
