@@ -21,6 +21,29 @@ def read_eval_csv(path: Path, column: str = "true_return"):
     return {s: tuple(map(np.asarray, zip(*sorted(v)))) for s, v in per_seed.items()}
 
 
+def returns_summary(eval_csv: Path) -> str:
+    """One line per evaluation step: the true return's mean over seeds (and its range over
+    seeds when there are several), the success rate beside it where the task has one."""
+    def by_step(column):
+        values = defaultdict(list)
+        for steps, per_seed in read_eval_csv(eval_csv, column).values():
+            for step, value in zip(steps, per_seed):
+                values[int(step)].append(value)
+        return values
+
+    returns, rates = by_step("true_return"), by_step("success")
+    lines = []
+    for step in sorted(returns):
+        v = np.asarray(returns[step])
+        line = f"  step {step:>8}: return {v.mean():8.1f}"
+        if len(v) > 1:
+            line += f" (seeds {v.min():.1f} to {v.max():.1f})"
+        if rates[step]:
+            line += f", success {np.mean(rates[step]):.0%}"
+        lines.append(line)
+    return "\n".join(lines)
+
+
 def plot_learning_curve(eval_csv: Path, out_png: Path, title: str = "") -> Path:
     """Each seed thin, the mean over seeds bold with a +-1 std band (where steps align):
     the true return, and beside it the success rate where the task has one (MetaWorld)."""

@@ -10,7 +10,7 @@ from hprior_jax.experiments.attention_map import plot_attention_map
 from hprior_jax.experiments.report import method_color, plot_task_curves
 from hprior_jax.lab.report import comparison_sentence
 from hprior_jax.lab.report_figures import plot_metric
-from hprior_jax.plotting import plot_learning_curve
+from hprior_jax.plotting import plot_learning_curve, returns_summary
 
 
 def _meta(path):
@@ -19,11 +19,10 @@ def _meta(path):
 
 
 def _eval_csv(path, seeds, success: bool):
-    rows = ["step,seed,true_return" + (",success" if success else "")]
+    rows = ["step,seed,true_return,success"]  # eval.csv's columns; DM Control's success empty
     for step in (1000, 2000, 3000):
         for s in seeds:
-            rows.append(f"{step},{s},{step / 100 + s}" + (f",{(s + step) % 2}" if success
-                                                            else ""))
+            rows.append(f"{step},{s},{step / 100 + s}," + (f"{(s + step) % 2}" if success else ""))
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(rows) + "\n")
     return path
@@ -36,6 +35,15 @@ def test_a_learning_curve_of_a_task_with_success_has_a_rate_axis(tmp_path):
     rate, returns = axes
     assert rate["ylabel"] == "evaluation success rate" and rate["ylim"] == [-0.02, 1.02]
     assert returns["ylabel"] == "evaluation true return" and "mean" in returns["legend"]
+
+
+def test_the_terminal_summary_gives_each_evaluation_its_mean_range_and_success(tmp_path):
+    csv = _eval_csv(tmp_path / "eval.csv", (1, 3), success=True)
+    lines = returns_summary(csv).splitlines()
+    assert len(lines) == 3 and lines[0].split() == ["step", "1000:", "return", "12.0", "(seeds",
+                                                    "11.0", "to", "13.0),", "success", "100%"]
+    one_seed = returns_summary(_eval_csv(tmp_path / "one" / "eval.csv", (2,), success=False))
+    assert one_seed.splitlines()[-1].split() == ["step", "3000:", "return", "32.0"]
 
 
 def test_grid_curves_name_seeds_in_the_singular_and_keep_a_colour_per_method(tmp_path):

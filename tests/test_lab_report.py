@@ -246,3 +246,19 @@ def test_within_episode_metrics_see_credit_that_the_pooled_ones_hide():
     ramp = np.tile(np.linspace(0, 1, 40), (8, 1)) + 0.0 * level
     assert uniform_credit_ceiling(ramp, 10)["episode_pearson"] > 0.95
     assert uniform_credit_ceiling(true, 10)["episode_pearson"] < 0.6  # white noise shape
+
+
+def test_report_warns_when_the_world_model_does_not_predict_and_says_where_it_fails():
+    from types import SimpleNamespace
+
+    from hprior_jax.lab.sweep import report_notes
+
+    rng = np.random.default_rng(0)
+    data = SimpleNamespace(test_reward=rng.normal(size=(3, 100)), segment_len=10)
+    seed = {"wm/skill_vs_persistence": -50.0, "wm/latent_skill_vs_persistence": 0.4,
+            "wm/reconstruction_error": 0.2, "wm/persistence_error": 0.004}
+    warned = report_notes(data, [seed, seed])[0]
+    assert "does not predict" in warned and "-50.000" in warned
+    assert "latent space its skill over persistence is +0.400" in warned and "0.2 against" in warned
+    predicting = report_notes(data, [{**seed, "wm/skill_vs_persistence": 0.3}] * 2)
+    assert not any("does not predict" in n for n in predicting)

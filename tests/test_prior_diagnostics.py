@@ -70,6 +70,14 @@ def test_next_state_errors_match_numpy_and_the_dynamics_loss():
                                                           rel=1e-5)
     assert float(e["wm/skill_vs_persistence"]) == pytest.approx(
         1 - float(e["wm/next_obs_error"]) / half_sq(o[:, :-1]), rel=1e-5)
+    # in latent space: the dynamics loss's latent term against z_t, and the decoder's floor
+    z = np.asarray(wm.encode(params.obs, obs, CFG))
+    latent_persistence = 0.5 * ((z[:, :-1] - z[:, 1:]) ** 2).sum(-1).mean()
+    assert float(e["wm/latent_error"]) == pytest.approx(float(m["prior/wm_latent_loss"]), rel=1e-5)
+    assert float(e["wm/latent_skill_vs_persistence"]) == pytest.approx(
+        1 - float(m["prior/wm_latent_loss"]) / latent_persistence, rel=1e-4)
+    recon = np.asarray(wm.decode(params.obs, z[:, 1:], CFG))
+    assert float(e["wm/reconstruction_error"]) == pytest.approx(half_sq(recon), rel=1e-5)
 
 
 @pytest.mark.slow  # CI time (54 s: two compiles of the diagnostics); the lab runs it for real

@@ -114,9 +114,19 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         print(f"\n{e}. Continue with:\n  hprior train --resume {run_dir}", file=sys.stderr,
               flush=True)
         return 130
+    _print_results(run_dir)
+    return 0
+
+
+def _print_results(run_dir: Path) -> None:
+    """What a finished run learned (the evaluations, one line each) and where its files are."""
+    from hprior_jax.plotting import returns_summary
+
+    if (run_dir / "eval.csv").exists():
+        print("evaluation (deterministic policy, true reward):",
+              returns_summary(run_dir / "eval.csv"), sep="\n")
     print(f"done. results in {run_dir}: eval.csv, metrics.jsonl, learning_curve.png, "
           "tb/ (TensorBoard), checkpoints/", flush=True)
-    return 0
 
 
 def parse_config(default, args: list[str], **kw):

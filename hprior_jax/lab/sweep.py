@@ -189,6 +189,18 @@ def save_predictions(path: Path, rows: list[dict]) -> Path:
     return path
 
 
+def _latent_note(diagnostics: list[dict]) -> str:
+    """Where the decoded skill fails, whether the transformer predicts in its own latent space
+    and how much of the decoded error the observation model's reconstruction alone makes."""
+    if "wm/latent_skill_vs_persistence" not in diagnostics[0]:  # a cache of an older lab
+        return ""
+    mean = lambda k: np.mean([d[k] for d in diagnostics])
+    return (f" In latent space its skill over persistence is "
+            f"{mean('wm/latent_skill_vs_persistence'):+.3f}; the observation model's "
+            f"reconstruction error alone is {mean('wm/reconstruction_error'):.4g} against "
+            f"persistence's {mean('wm/persistence_error'):.4g}.")
+
+
 def report_notes(data: Dataset, diagnostics: list[dict]) -> list[str]:
     """Paragraphs the report must show first: the world model's skill when it does not beat
     persistence (then α is not evidence), and what uniform credit can reach at best."""
@@ -199,7 +211,7 @@ def report_notes(data: Dataset, diagnostics: list[dict]) -> list[str]:
                      f"{np.mean(skill):+.3f}, mean of {len(skill)} seeds; "
                      f"{sum(k > 0 for k in skill)} seeds above 0). Its α diagnostics and the "
                      "rules that read it (prior, positional) are not evidence about what a "
-                     "predicting world model's α would do.")
+                     "predicting world model's α would do." + _latent_note(diagnostics))
     ceiling = uniform_credit_ceiling(data.test_reward, data.segment_len)
     notes.append(f"Uniform credit's ceiling on the held-out episodes (the true reward against "
                  f"its own {data.segment_len}-step moving mean): Pearson "
