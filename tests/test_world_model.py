@@ -250,13 +250,15 @@ def test_a_scaler_standardises_the_valid_rows_and_training_with_it_is_training_o
     assert gap > 1e-2, gap
 
 
-def test_dynamics_gradient_leaves_the_observation_model_alone():
+@pytest.mark.parametrize("predict", wm.PREDICTIONS)
+def test_dynamics_gradient_leaves_the_observation_model_alone(predict):
     """The dynamics loss has no gradient w.r.t. the observation model (z enters under
     stop_gradient, the decoder is frozen), but does w.r.t. the dynamics params."""
-    st = _init(jax.random.key(3), CFG)
+    cfg = _cfg(predict=predict)
+    st = _init(jax.random.key(3), cfg)
     o = OBS_BUF.reshape(N_EP, EP, DS)[:2, :T]
     a = ACT_BUF.reshape(N_EP, EP, DA)[:2, :T]
-    g_dyn, g_obs = jax.jit(jax.grad(lambda d, p: wm.dynamics_loss(d, p, o, a, None, CFG, deterministic=True)[0],
+    g_dyn, g_obs = jax.jit(jax.grad(lambda d, p: wm.dynamics_loss(d, p, o, a, None, cfg, deterministic=True)[0],
                                     argnums=(0, 1)))(st.params.dyn, st.params.obs)
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree_util.tree_leaves(g_obs))
     assert sum(float(jnp.abs(g).sum()) for g in jax.tree_util.tree_leaves(g_dyn)) > 0.0
@@ -281,3 +283,24 @@ def test_dropout_rng_drops_reproducibly_and_every_impl_is_vmappable(impl):
     assert z_batched.shape == (2,) + z1.shape and not np.allclose(z_batched[0], z_batched[1])
     with pytest.raises(ValueError, match="dropout_rng"):
         _cfg(dropout_rng="philox")
+
+
+def test_delta_prediction_adds_the_change_to_the_present_and_starts_as_persistence():
+    """predict="delta": ẑ_{t+1} = z_t + the head's output, decoded as s_t + dec(ẑ) - dec(z_t);
+    its head's output layer starts at zero, so an untrained change model is persistence
+    exactly (an untrained state model predicts noise around the decoder's output)."""
+    with pytest.raises(ValueError, match="predict"):
+        _cfg(predict="next")
+    delta = _cfg(predict="delta")
+    obs = OBS_BUF.reshape(N_EP, EP, DS)[:, :T]
+    act = ACT_BUF.reshape(N_EP, EP, DA)[:, :T]
+    fresh = _init(jax.random.key(0), delta).params
+    np.testing.assert_allclose(wm.predict_next(fresh, obs, act, delta)[1], obs[:, :-1], atol=1e-6)
+    params = _init(jax.random.key(0), CFG).params  # a head that outputs something
+    z_state, _ = wm.predict_next(params, obs, act, CFG)
+    z_delta, s_delta = wm.predict_next(params, obs, act, delta)
+    z_now = wm.encode(params.obs, obs[:, :-1], CFG)
+    np.testing.assert_allclose(z_delta, z_now + z_state, rtol=1e-5, atol=1e-6)
+    decode = lambda z: wm.decode(params.obs, z, CFG)
+    s_expected = obs[:, :-1] + decode(z_now + z_state) - decode(z_now)
+    np.testing.assert_allclose(s_delta, s_expected, rtol=1e-5, atol=1e-5)

@@ -84,6 +84,10 @@ class PriorConfig:
     """Ablation (not in the paper, nor TWM, which feed raw observations): the world model's
     observations standardised per dimension by the replay buffer's mean and std, recomputed
     from the buffer whenever the world model trains or gives credit."""
+    wm_predict: wm.Prediction = "state"
+    """Option (not in the paper, nor TWM, which predict the next latent itself): "delta"
+    predicts its change, ẑ_{t+1} = z_t + head, decoded as s_t + dec(ẑ_{t+1}) - dec(z_t). On
+    MetaWorld, where states barely move per step, the "state" model loses to persistence."""
     # world model sizes (TWM defaults; appendix Table 5 sets sequence = memory = segment length)
     wm_batch: int = 100
     wm_latent: int = 32
@@ -129,6 +133,7 @@ class PriorConfig:
             obs_hidden=(self.wm_obs_hidden,) * self.wm_obs_depth, embed_dim=self.wm_embed,
             num_heads=self.wm_heads, head_dim=self.wm_head_dim, num_layers=self.wm_layers,
             ff_dim=self.wm_ff, dropout=self.wm_dropout, dropout_rng=self.wm_dropout_rng,
+            predict=self.wm_predict,
             head_hidden=(self.wm_head_hidden,) * self.wm_head_depth, segment_len=segment_len,
             memory_len=segment_len, batch_size=self.wm_batch, obs_lr=self.wm_lr, dyn_lr=self.wm_lr)
 

@@ -4,10 +4,11 @@ diagnostics on fixed segments (they read true rewards: metrics only, never train
 * `next_state_errors`: the world model's next-state error (decoded, in state units, the
   dynamics loss's `next_obs` term without dropout) next to two predictors that need no model:
   persistence (s_{t+1} = s_t) and the mean state of the segments. A model that does not beat
-  persistence has learned nothing a credit could use about the dynamics. The decoded error
-  cannot fall below the observation model's reconstruction error (`wm/reconstruction_error`,
-  of dec(enc(s_{t+1}))); `wm/latent_skill_vs_persistence` asks the same question where the
-  transformer works, of ẑ_{t+1} against z_t for z_{t+1} = enc(s_{t+1}).
+  persistence has learned nothing a credit could use about the dynamics. Predicting states,
+  the decoded error cannot fall below the observation model's reconstruction error
+  (`wm/reconstruction_error`, of dec(enc(s_{t+1}))); predicting changes (`predict="delta"`)
+  it can. `wm/latent_skill_vs_persistence` asks the same question where the transformer
+  works, of ẑ_{t+1} against z_t for z_{t+1} = enc(s_{t+1}).
 * `credit_diagnostics`: how much of α is position. `alpha/position_r2` is the share of α's
   variance over (segment, step) that its mean profile over segments explains (1: α is the same
   at each position whatever the segment). Time-shuffled segments (each segment's steps
@@ -43,8 +44,7 @@ def next_state_errors(params: wm.WorldModelParams, obs: jax.Array, act: jax.Arra
                       cfg: wm.WorldModelConfig) -> dict[str, jax.Array]:
     """0.5·Σ_dims squared error of predictions of obs[:, 1:] from segments obs[B, T, ds],
     act[B, T, da]: the world model (deterministic), persistence and the mean state."""
-    z_pred, _, _ = wm.dynamics(params, obs, act, cfg, deterministic=True)
-    model = wm.decode(params.obs, z_pred[:, :-1], cfg)
+    z_pred, model = wm.predict_next(params, obs, act, cfg)
     nxt = obs[:, 1:]
     z = wm.encode(params.obs, obs, cfg)
     mean = obs.reshape(-1, obs.shape[-1]).mean(0)
@@ -52,7 +52,7 @@ def next_state_errors(params: wm.WorldModelParams, obs: jax.Array, act: jax.Arra
               "wm/persistence_error": _half_sq(obs[:, :-1], nxt),
               "wm/mean_state_error": _half_sq(jnp.broadcast_to(mean, nxt.shape), nxt),
               "wm/reconstruction_error": _half_sq(wm.decode(params.obs, z[:, 1:], cfg), nxt),
-              "wm/latent_error": _half_sq(z_pred[:, :-1], z[:, 1:]),
+              "wm/latent_error": _half_sq(z_pred, z[:, 1:]),
               "wm/latent_persistence_error": _half_sq(z[:, :-1], z[:, 1:])}
     skill = lambda err, base: 1.0 - errors[err] / jnp.maximum(errors[base], 1e-12)
     errors["wm/skill_vs_persistence"] = skill("wm/next_obs_error", "wm/persistence_error")

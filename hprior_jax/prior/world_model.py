@@ -53,6 +53,8 @@ _relu_gain_init = nn.initializers.variance_scaling(2.0, "fan_in", "uniform")
 _linear_init = nn.initializers.variance_scaling(1.0, "fan_in", "uniform")
 
 
+Prediction = Literal["state", "delta"]
+PREDICTIONS = get_args(Prediction)
 DropoutRng = Literal["hash", "rbg", "threefry"]
 DROPOUT_RNGS = get_args(DropoutRng)
 # fold_in tag of the world model's random stream (its init, updates and dropout), kept apart
@@ -106,6 +108,9 @@ class WorldModelConfig:
     # that applies the mask; "rbg" (XLA's RngBitGenerator) and "threefry" (the key itself)
     # write them to memory first. benchmarks/results/world_model_update.csv times all three.
     dropout_rng: DropoutRng = "hash"
+    # What the head predicts (`predict_next`): "state" (TWM and the paper: ẑ_{t+1} itself) or
+    # "delta", an option neither has: the change from z_t, decoded as the change from s_t.
+    predict: Prediction = "state"
 
     def __post_init__(self):
         if self.obs_size < 1 or self.act_size < 1:
@@ -113,6 +118,8 @@ class WorldModelConfig:
         if self.memory_len + 1 < self.segment_len:
             raise ValueError(f"memory_len={self.memory_len} < segment_len-1: the last step could not "
                              "see the first; set memory_len = segment_len (appendix Table 5)")
+        if self.predict not in PREDICTIONS:
+            raise ValueError(f"predict={self.predict!r}; choose one of {PREDICTIONS}")
         if self.dropout_rng not in DROPOUT_RNGS:
             raise ValueError(f"dropout_rng={self.dropout_rng!r}; choose one of {DROPOUT_RNGS}")
 
@@ -139,6 +146,7 @@ class MLP(nn.Module):
     pre_activation: bool = False
     dropout: float = 0.0
     dropout_bits: DropoutBits = "hash"
+    out_init: Any = _linear_init
 
     @nn.compact
     def __call__(self, x, deterministic: bool = True):
@@ -148,7 +156,7 @@ class MLP(nn.Module):
             x = silu_tanh(nn.Dense(w, kernel_init=_relu_gain_init, bias_init=nn.initializers.zeros)(x))
             if self.dropout > 0:
                 x = Dropout(self.dropout, self.dropout_bits)(x, deterministic)
-        return nn.Dense(self.out_dim, kernel_init=_linear_init, bias_init=nn.initializers.zeros)(x)
+        return nn.Dense(self.out_dim, kernel_init=self.out_init, bias_init=nn.initializers.zeros)(x)
 
 
 class ObservationModel(nn.Module):
@@ -185,8 +193,10 @@ class DynamicsModel(nn.Module):
         tokens = jnp.stack([ez, ea], axis=2).reshape(b, 2 * t, c.embed_dim)
         h, new_mems, attn = TransformerXL(c.transformer(), name="transformer")(
             tokens, mems, key_mask, deterministic)
+        # a change model starts as persistence: its output layer from zero
+        out_init = nn.initializers.zeros if c.predict == "delta" else _linear_init
         head = MLP(c.head_hidden, c.latent_dim, pre_activation=True, dropout=c.dropout,
-                   dropout_bits=c.dropout_bits, name="z_head")
+                   dropout_bits=c.dropout_bits, out_init=out_init, name="z_head")
         return head(h[:, 1::2], deterministic), new_mems, attn
 
 
@@ -257,18 +267,34 @@ def dynamics(params: WorldModelParams, obs: jax.Array, act: jax.Array, cfg: Worl
     """
     z = jax.lax.stop_gradient(encode(params.obs, obs, cfg))
     rngs = None if deterministic else {"dropout": dropout_key(key, cfg.dropout_rng)}
-    return DynamicsModel(cfg).apply(params.dyn, z, act, mems, key_mask, deterministic, rngs=rngs)
+    z_next, mems, attn = DynamicsModel(cfg).apply(params.dyn, z, act, mems, key_mask,
+                                                  deterministic, rngs=rngs)
+    return (z + z_next if cfg.predict == "delta" else z_next), mems, attn
+
+
+def predict_next(params: WorldModelParams, obs: jax.Array, act: jax.Array, cfg: WorldModelConfig,
+                 *, deterministic: bool = True, key: jax.Array | None = None):
+    """(ẑ_{t+1}[B, T-1, dz], ŝ_{t+1}[B, T-1, ds]) for steps 0..T-2 of segments obs[B, T, ds],
+    act[B, T, da]; ŝ through the decoder (under stop_gradient). With predict="delta" the
+    decoded change is added to s_t, ŝ = s_t + dec(ẑ_{t+1}) - dec(z_t), so the observation
+    model's reconstruction error cancels to first order: on MetaWorld's slowly moving 39-dim
+    states it is about 30x persistence's error and would hide any dynamics learned."""
+    z_pred = dynamics(params, obs, act, cfg, deterministic=deterministic, key=key)[0][:, :-1]
+    dec_params = jax.lax.stop_gradient(params.obs)
+    obs_pred = decode(dec_params, z_pred, cfg)
+    if cfg.predict == "delta":
+        z_now = jax.lax.stop_gradient(encode(params.obs, obs[:, :-1], cfg))
+        obs_pred = obs[:, :-1] + obs_pred - decode(dec_params, z_now, cfg)
+    return z_pred, obs_pred
 
 
 def dynamics_loss(dyn_params: Params, obs_params: Params, obs: jax.Array, act: jax.Array,
                   key: jax.Array | None, cfg: WorldModelConfig, deterministic: bool = False):
     """Next-state loss on obs[B, T, ds], act[B, T, da]: steps 0..T-2 predict obs[:, 1:]."""
     params = WorldModelParams(obs=obs_params, dyn=dyn_params)
-    z_pred, _, _ = dynamics(params, obs, act, cfg, deterministic=deterministic, key=key)
-    z_pred = z_pred[:, :-1]
+    z_pred, obs_pred = predict_next(params, obs, act, cfg, deterministic=deterministic, key=key)
     z_next = jax.lax.stop_gradient(encode(obs_params, obs[:, 1:], cfg))
     latent = 0.5 * jnp.sum((z_pred - z_next) ** 2, axis=-1).mean()
-    obs_pred = decode(jax.lax.stop_gradient(obs_params), z_pred, cfg)
     next_obs = 0.5 * jnp.sum((obs_pred - obs[:, 1:]) ** 2, axis=-1).mean()
     loss = cfg.latent_coef * latent + cfg.next_obs_coef * next_obs
     return loss, {"prior/wm_dyn_loss": loss, "prior/wm_latent_loss": latent,
