@@ -67,7 +67,8 @@ def main():
     p.add_argument("--variant", default=None, choices=["arm", "free"],
                    help="scene of the port (default: the registered port)")
     p.add_argument("--wrist", default=None,
-                   help="wrist collider: box, mesh (C only: port_c) or a number of hull points")
+                   help="wrist collider: box, mesh (C only: port_c), a number of hull points, or "
+                        "coacd:THRESHOLD:MAX_HULLS:POINTS[:KEPT] (convex pieces of the mesh)")
     p.add_argument("--keep-cylinders", action="store_true",
                    help="paired cylinders stay cylinders (C only: port_c)")
     p.add_argument("--max-contacts", default=None,

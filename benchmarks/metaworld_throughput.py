@@ -80,7 +80,7 @@ def main():
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", default=RESULTS)
     p.add_argument("--variant", default=None, choices=["arm", "free"])
-    p.add_argument("--wrist", default=None, help="box or a number of hull points")
+    p.add_argument("--wrist", default=None, help="box, a number of hull points or coacd:... (see metaworld_dynamics)")
     p.add_argument("--label", default=None, help="scene label (default: variant/registered)")
     p.add_argument("--no-c", action="store_true", help="skip metaworld's C env timing")
     p.add_argument("--linesearch", default="while", choices=["while", "scan"])

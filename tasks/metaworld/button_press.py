@@ -51,6 +51,8 @@ class ButtonPress(SawyerTask):
             ("table_top", "tablelink", "PLANE", (0.7, 0.4, 0.01), (0, 0, 0), (1, 0, 0, 0),
              ("tablelink", 0)),
         ),
+        # the mesh wrist or its pieces (wrist="coacd...") reach into the hole: the 4 slabs
+        solid_stand_ins=(("box_hull", ("buttonbox", None)),),
         placed_body="box",
     )
     obj_low = (-0.1, 0.85, 0.115)

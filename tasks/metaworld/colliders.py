@@ -62,21 +62,64 @@ def wrist_hull_points(model, data, g, body, k):
     """k vertices of mesh g's convex hull (farthest-point sampled), in `body`'s frame."""
     from scipy.spatial import ConvexHull
     local = mesh_vertices(model, data, g, body)
-    hull = local[ConvexHull(local).vertices]
-    centre = hull.mean(0)
-    chosen = [int(np.argmax(np.linalg.norm(hull - centre, axis=1)))]
-    dist = np.linalg.norm(hull - hull[chosen[0]], axis=1)
-    while len(chosen) < k:
+    return farthest_points(local[ConvexHull(local).vertices], k)
+
+
+def farthest_points(points: np.ndarray, k: int) -> np.ndarray:
+    """k of `points` spread out (farthest-point sampling from the one farthest from the mean)."""
+    centre = points.mean(0)
+    chosen = [int(np.argmax(np.linalg.norm(points - centre, axis=1)))]
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    while len(chosen) < min(k, len(points)):
         i = int(np.argmax(dist))
         chosen.append(i)
-        dist = np.minimum(dist, np.linalg.norm(hull - hull[i], axis=1))
-    return hull[chosen]
+        dist = np.minimum(dist, np.linalg.norm(points - points[i], axis=1))
+    return points[chosen]
+
+
+def parse_pieces(wrist) -> tuple[float, int, int, list[int] | None] | None:
+    """"coacd[:THRESHOLD[:MAX_HULLS[:POINTS[:I,J,...]]]]" -> (CoACD's concavity threshold, its
+    most pieces, hull points kept per piece, the pieces kept: None = all); None otherwise."""
+    if not (isinstance(wrist, str) and wrist.startswith("coacd")):
+        return None
+    thr, hulls, points, keep = (wrist[len("coacd"):].split(":") + ["0.3", "8", "24", ""])[1:5]
+    return float(thr), int(hulls), int(points), (
+        [int(i) for i in keep.split(",")] if keep else None)
+
+
+def wrist_coacd(model, data, g, body, threshold: float, max_hulls: int, points: int,
+                keep: list[int] | None = None) -> list[np.ndarray]:
+    """Mesh g's approximate convex decomposition (CoACD with coarse search settings: about
+    10 s; its defaults took 9 min and gave 57 pieces), each piece on `points` of its hull
+    points (farthest-point sampled), in `body`'s frame; `keep`: the pieces kept, by index.
+    Unlike one hull of the whole mesh, the pieces keep the shape of its front."""
+    import coacd
+    from scipy.spatial import ConvexHull
+    verts = mesh_vertices(model, data, g, body)
+    mid = model.geom_dataid[g]
+    faces = model.mesh_face[model.mesh_faceadr[mid]:model.mesh_faceadr[mid] + model.mesh_facenum[mid]]
+    coacd.set_log_level("error")
+    parts = coacd.run_coacd(coacd.Mesh(verts, faces), threshold=threshold,
+                            max_convex_hull=max_hulls, preprocess_resolution=20, resolution=1000,
+                            mcts_nodes=10, mcts_iterations=60, mcts_max_depth=2, seed=0)
+    pieces = [farthest_points(v[ConvexHull(v).vertices], points) for v, _ in parts]
+    return pieces if keep is None else [pieces[i] for i in keep]
 
 
 def add_wrist(spec: mujoco.MjSpec, full: mujoco.MjModel, full_data: mujoco.MjData,
-              wrist: str | int, src: int) -> None:
-    """The geom "wrist" on `right_hand`: metaworld's mesh itself ("mesh"), a convex mesh on
-    `wrist` of its hull points (an int), or its bounding box in the hand's axes ("box")."""
+              wrist: str | int, src: int) -> list[str]:
+    """The wrist geoms on `right_hand`: metaworld's mesh itself ("mesh"), a convex mesh on
+    `wrist` of its hull points (an int), convex pieces of it ("coacd...", `parse_pieces`), or
+    its bounding box in the hand's axes ("box"). -> their names."""
+    pieces = parse_pieces(wrist)
+    if pieces is not None:
+        pieces = wrist_coacd(full, full_data, src, full.body("right_hand").id, *pieces)
+    if pieces is not None:
+        for i, pts in enumerate(pieces):
+            spec.add_mesh(name=f"wrist_hull_{i}", uservert=pts.ravel().tolist())
+            spec.body("right_hand").add_geom(name=f"wrist_{i}", type=mujoco.mjtGeom.mjGEOM_MESH,
+                                             meshname=f"wrist_hull_{i}")
+        return [f"wrist_{i}" for i in range(len(pieces))]
     if wrist == "mesh":
         spec.geom(full.geom(src).name).name = "wrist"
     elif not isinstance(wrist, str):
@@ -88,6 +131,7 @@ def add_wrist(spec: mujoco.MjSpec, full: mujoco.MjModel, full_data: mujoco.MjDat
         size, pos, quat = wrist_box(full, full_data, src, full.body("right_hand").id)
         spec.body("right_hand").add_geom(name="wrist", type=mujoco.mjtGeom.mjGEOM_BOX,
                                          size=list(size), pos=list(pos), quat=list(quat))
+    return ["wrist"]
 
 
 # partners with which MJX collides a cylinder exactly

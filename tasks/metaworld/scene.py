@@ -44,6 +44,10 @@ class SceneSpec:
     # part can reach): (name, body, mjtGeom type name, size, pos, quat, params_like) with
     # params_like a geom name or (body, index) whose contact parameters the new geom takes
     fixtures: tuple = ()
+    # (fixture name, (body, index or None)): a fixture that stands for those geoms as one solid
+    # block against a box or hull wrist; the mesh wrist or its pieces, which reach into their
+    # gaps, pair with the geoms themselves instead
+    solid_stand_ins: tuple = ()
 
 
 def metaworld_xml_path(name: str) -> str:
@@ -100,11 +104,25 @@ class _GeomRefs:
         return out
 
 
-def _pair_names(scene: SceneSpec, refs: _GeomRefs) -> list[tuple[str, str]]:
+def _pair_names(scene: SceneSpec, refs: _GeomRefs, exact_wrist: bool) -> list[tuple[str, str]]:
     pairs = [(hg, og) for og in refs.expand(scene.object_geoms) for hg in GRIPPER_GEOMS]
     pairs += [("wrist", og) for og in refs.expand(scene.wrist_geoms)]
     pairs += [tuple(refs.resolve(n) for n in pair) for pair in scene.extra_pairs]
+    if exact_wrist:
+        stand_ins = {name: refs.expand([geoms]) for name, geoms in scene.solid_stand_ins}
+        pairs = [(a, g) for a, b in pairs for g in stand_ins.get(b, [b])]
     return pairs
+
+
+def _wrist_pairs(pairs: list, wrist_geoms: list[str]) -> list[tuple[str, str]]:
+    """Each pair with "wrist" as one pair per wrist geom."""
+    out = []
+    for a, b in pairs:
+        if "wrist" not in (a, b):
+            out.append((a, b))
+        else:
+            out += [(w, b) if a == "wrist" else (a, w) for w in wrist_geoms]
+    return out
 
 
 def _load_named(xml: str) -> tuple[mujoco.MjSpec, mujoco.MjModel, mujoco.MjData]:
@@ -142,7 +160,7 @@ def _strip_looks(spec, wrist: str | int) -> None:
     keep = {"mesh": ("eGripperBase",), "box": ()}.get(wrist, ("wrist_hull",))
     for coll in (spec.meshes, spec.textures, spec.materials):
         for item in list(coll):
-            if item.name not in keep:
+            if item.name not in keep and not item.name.startswith("wrist_hull_"):
                 spec.delete(item)
     for g in spec.geoms:
         g.material = ""
@@ -156,9 +174,11 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     arm=True: metaworld's arm kept with its joints, inertias and damping (only its geoms go);
     arm=False: the hand on a free joint (arm deleted), the scene of the first ports.
     wrist: the wrist collider that replaces metaworld's gripper-base mesh: "box" (its
-    bounding box in the hand's axes), an int k (a convex mesh on k of its hull vertices), or
-    "mesh" (the original mesh, and paired cylinders stay cylinders: C MuJoCo diagnostics
-    only; MJX has no cylinder-box collision and the mesh is far too big for it).
+    bounding box in the hand's axes), an int k (a convex mesh on k of its hull vertices),
+    "coacd[:...]" (convex pieces of the mesh, `colliders.parse_pieces`; the task's solid
+    stand-ins give way to the geoms they stand for), or "mesh" (the original mesh, and paired
+    cylinders stay cylinders: C MuJoCo diagnostics only; MJX has no cylinder-box collision
+    and the mesh is far too big for it).
     metaworld_invweights: give every kept body and joint metaworld's compiled inverse weights
     (`scene_bodies.copy_invweights`); False keeps the simplified scene's own.
     keep_cylinders: paired cylinders stay cylinders with any wrist (C MuJoCo only).
@@ -166,7 +186,8 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     spec, full, full_data = _load_named(scene.xml)
     scene_bodies.freeze_inertials(spec, full)
     refs = _GeomRefs(full)
-    pair_names = _pair_names(scene, refs)
+    pair_names = _pair_names(scene, refs, wrist == "mesh"
+                             or colliders.parse_pieces(wrist) is not None)
     used = {n for p in pair_names for n in p}
     wrist_src = colliders.wrist_source(full)
     param_src = {"wrist": wrist_src}  # where a pair geom takes its contact parameters from
@@ -187,8 +208,12 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     keep = {"wrist"} | ({full.geom(wrist_src).name} if wrist == "mesh" else set())
     _prune_geoms(spec, used, keep, arm)
     if "wrist" in used:
-        colliders.add_wrist(spec, full, full_data, wrist, wrist_src)
+        wrist_geoms = colliders.add_wrist(spec, full, full_data, wrist, wrist_src)
+        pair_names = _wrist_pairs(pair_names, wrist_geoms)
+        param_src.update({w: wrist_src for w in wrist_geoms})
     for name, body, gtype, size, pos, quat, _ in scene.fixtures:
+        if name not in used:  # a stand-in the wrist does without
+            continue
         spec.body(body).add_geom(name=name, type=getattr(mujoco.mjtGeom, f"mjGEOM_{gtype}"),
                                  size=list(size), pos=list(pos), quat=list(quat))
     _strip_looks(spec, wrist)

@@ -78,6 +78,38 @@ def test_exact_shape_scenes_build_for_c_mujoco():
     assert kept.mj_model.geom_type[kept.mj_model.geom("wrist").id] == mujoco.mjtGeom.mjGEOM_BOX
 
 
+def test_wrist_pieces_span_the_mesh_and_meet_the_box_slab_by_slab():
+    """`wrist="coacd:..."`: convex pieces of metaworld's wrist mesh, each on at most POINTS
+    hull points, inside the mesh's hull and spanning its extent, paired with the box's 4
+    slabs where the box wrist meets one solid stand-in."""
+    import mujoco
+    from scipy.spatial import ConvexHull
+
+    from tasks.metaworld import colliders
+    from tasks.metaworld.scene import _load_named
+
+    task = make_task("button_press", wrist="coacd:0.3:8:24:0,1")
+    m = task.mj_model
+    names = [m.geom(g).name for g in range(m.ngeom)]
+    pieces = [n for n in names if n.startswith("wrist_")]
+    assert pieces == ["wrist_0", "wrist_1"] and "box_hull" not in names
+    pairs = {(m.geom(a).name, m.geom(b).name) for a, b in zip(m.pair_geom1, m.pair_geom2)}
+    slabs = [m.geom(g).name for g in range(m.ngeom) if m.geom_bodyid[g] == m.body("buttonbox").id
+             and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+    assert len(slabs) == 4 and all((w, s) in pairs for w in pieces for s in slabs)
+    for w in pieces:
+        assert m.mesh_vertnum[m.geom_dataid[m.geom(w).id]] <= 24
+    _, ref, ref_data = _load_named(task.scene.xml)
+    src, body = colliders.wrist_source(ref), ref.body("right_hand").id
+    every = np.concatenate(colliders.wrist_coacd(ref, ref_data, src, body, 0.3, 8, 24))
+    mesh = colliders.mesh_vertices(ref, ref_data, src, body)
+    hull = ConvexHull(mesh)  # inside: A·x + b <= 0 for every facet
+    # CoACD approximates: its pieces stick out of the mesh by 1.4 mm at most here
+    assert (every @ hull.equations[:, :3].T + hull.equations[:, 3]).max() < 2e-3
+    np.testing.assert_allclose(every.min(0), mesh.min(0), atol=2e-3)
+    np.testing.assert_allclose(every.max(0), mesh.max(0), atol=2e-3)
+
+
 def test_drawer_stops_where_metaworld_stops():
     """Closed loop, the port's scene stepped by C MuJoCo (no MJX compile; the MJX port runs
     the same model, see the slow test): over the first 150 steps (reach, hook, pull to the
