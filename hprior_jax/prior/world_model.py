@@ -284,7 +284,8 @@ def predict_next(params: WorldModelParams, obs: jax.Array, act: jax.Array, cfg: 
     dec_params = jax.lax.stop_gradient(params.obs)
     obs_pred = decode(dec_params, z_pred, cfg)
     if cfg.predict == "delta":
-        z_now = jax.lax.stop_gradient(encode(params.obs, obs[:, :-1], cfg))
+        # the same expression as dynamics' own z: XLA computes it once
+        z_now = jax.lax.stop_gradient(encode(params.obs, obs, cfg))[:, :-1]
         obs_pred = obs[:, :-1] + obs_pred - decode(dec_params, z_now, cfg)
     return z_pred, obs_pred
 

@@ -111,10 +111,9 @@ def add_wrist(spec: mujoco.MjSpec, full: mujoco.MjModel, full_data: mujoco.MjDat
     """The wrist geoms on `right_hand`: metaworld's mesh itself ("mesh"), a convex mesh on
     `wrist` of its hull points (an int), convex pieces of it ("coacd...", `parse_pieces`), or
     its bounding box in the hand's axes ("box"). -> their names."""
-    pieces = parse_pieces(wrist)
-    if pieces is not None:
-        pieces = wrist_coacd(full, full_data, src, full.body("right_hand").id, *pieces)
-    if pieces is not None:
+    settings = parse_pieces(wrist)
+    if settings is not None:
+        pieces = wrist_coacd(full, full_data, src, full.body("right_hand").id, *settings)
         for i, pts in enumerate(pieces):
             spec.add_mesh(name=f"wrist_hull_{i}", uservert=pts.ravel().tolist())
             spec.body("right_hand").add_geom(name=f"wrist_{i}", type=mujoco.mjtGeom.mjGEOM_MESH,
