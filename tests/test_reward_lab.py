@@ -154,12 +154,12 @@ def test_the_report_is_written_as_each_budget_is_reached(data, tmp_path, monkeyp
     seen = []
 
     class TwoBudgets:  # Lab's protocol: run(progress, on_budget) with rows per budget
-        seconds, compile_seconds, adam_steps, diagnostics = {}, {}, 0, []
+        seconds, compile_seconds, adam_steps, diagnostics, wall_before = {}, {}, 0, [], 0.0
 
         def __init__(self, cfg, data, given, world_model_cache=None):
             pass
 
-        def run(self, progress, on_budget):
+        def run(self, progress, on_budget, checkpoints=None):
             for budget in (10, 20):
                 on_budget([dict(seed=s, rule=r, budget=budget,
                                 prediction=np.asarray(data.test_reward) + s)
@@ -171,6 +171,47 @@ def test_the_report_is_written_as_each_budget_is_reached(data, tmp_path, monkeyp
                   tmp_path / "lab")
     assert seen == [1 + 4, 1 + 8]  # header + 2 seeds x 2 rules, then the second budget's too
     assert "run_info.json" in {p.name for p in (tmp_path / "lab").iterdir()}
+
+
+def test_a_stopped_lab_resumes_to_the_rows_of_a_lab_that_never_stopped(data, tmp_path,
+                                                                        monkeypatch):
+    """Stopped in its fourth round of five (after the first budget), the lab keeps the state
+    of its third; `resume` runs the last two rounds and ends with the same results and
+    predictions, bit for bit, as a lab that never stopped. Without `resume` the state is not
+    overwritten; another lab's state is refused before any work; the state goes at the end."""
+    from hprior_jax.lab import resume, sweep
+
+    cfg = tiny(rules=("pebble", "rvar", "oracle"), credits=("none", "uniform", "oracle"))
+    assert len(cfg.rounds()) == 5
+    run = partial(sweep.run_lab, data, cfg, **quiet, checkpoint_every_s=0.0)
+    run(tmp_path / "whole")
+    step, calls = Lab._shared_step, []
+
+    def stops_in_round_four(self, *args):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return step(self, *args)
+
+    monkeypatch.setattr(Lab, "_shared_step", stops_in_round_four)
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path / "stopped")
+    monkeypatch.setattr(Lab, "_shared_step", step)
+    stopped = tmp_path / "stopped"
+    state = resume.load(stopped / resume.STATE_NAME, resume.fingerprint(cfg, data))
+    assert (state.schedule, state.next_round) == (0, 3)
+    assert {r["budget"] for r in state.rows} == {20} and len(state.rows) == 2 * 3
+    with pytest.raises(FileExistsError):
+        run(stopped)
+    with pytest.raises(resume.StateMismatch):
+        sweep.run_lab(data, dataclasses.replace(cfg, seeds=(0,)), stopped, resume=True, **quiet)
+    run(stopped, resume=True)
+    assert not (stopped / resume.STATE_NAME).exists()
+    assert (stopped / "results.csv").read_text() == (tmp_path / "whole/results.csv").read_text()
+    with np.load(stopped / "predictions.npz") as a, \
+            np.load(tmp_path / "whole/predictions.npz") as b:
+        for name in ("seed", "rule", "budget", "prediction"):
+            np.testing.assert_array_equal(a[name], b[name])
 
 
 def test_unlabelled_segments_carry_their_rules_credit(data):

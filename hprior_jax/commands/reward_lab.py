@@ -58,8 +58,20 @@ def reward_lab(argv: list[str]) -> int:
                      args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam,
                      args.prior_set, args.tag)
     out = args.out or f"runs/reward_lab/{args.task}"
-    info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True), given=given,
-                   reuse_world_models=not args.no_world_model_cache, contrasts=contrasts)
+    from hprior_jax.dir_lock import DirInUse
+    from hprior_jax.lab.resume import StateMismatch
+
+    try:
+        info = run_lab(data, cfg, out, progress=lambda line: print(line, flush=True),
+                       given=given, reuse_world_models=not args.no_world_model_cache,
+                       contrasts=contrasts, resume=args.resume)
+    except (FileExistsError, StateMismatch, DirInUse) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"stopped: the same command with --resume goes on from the last state kept in "
+              f"{out} (the rounds since then run again)", file=sys.stderr)
+        return 130
     if info["world_model_cache"]:
         cache = info["world_model_cache"]
         print(f"world models {'loaded from' if cache['loaded'] else 'kept in'} {cache['path']}")
@@ -130,4 +142,8 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                              "test), e.g. oracle~shift:rvar "
                              "prior~shift:positional~shift@oracle~shift:rvar/2")
     parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
+    parser.add_argument("--resume", action="store_true",
+                        help="go on from where a lab stopped in --out (Ctrl-C, a kill): "
+                             "the same command plus --resume; its state is kept between "
+                             "rounds (at least every 10 min and at every budget)")
     return parser

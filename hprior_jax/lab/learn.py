@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hprior_jax.lab import seed_world_model
+from hprior_jax.lab import resume, seed_world_model
 from hprior_jax.lab.config import (CREDITS, NO_PRIOR, Episodes, GivenLabels,
                                    LabConfig, RuleArgs)
 from hprior_jax.lab.dataset import Dataset
@@ -84,6 +84,7 @@ class Lab(CellRounds):
         self.diagnostics: list[dict] = []  # per seed, when a rule needs the world model
         self.world_model_cache = world_model_cache if cfg.needs_world_model else None
         self.world_model_loaded = False  # True: from world_model_cache, not trained here
+        self.wall_before = 0.0  # seconds the lab ran before it was resumed
 
     # -- per seed -----------------------------------------------------------------------
     def seed_context(self, key: jax.Array, train: Episodes) -> SeedContext:
@@ -145,11 +146,16 @@ class Lab(CellRounds):
         return [dict(seed=seed, **{k: float(v[i]) for k, v in out.items()})
                 for i, seed in enumerate(self.cfg.seeds)]
 
-    def run(self, progress=print, on_budget=None) -> list[dict]:
+    def run(self, progress=print, on_budget=None,
+            checkpoints: resume.Checkpoints | None = None) -> list[dict]:
         """Every cell through every budget. -> rows (seed, rule, budget, the held-out
         predictions [E, L] as `prediction`, and the budget's last round's metrics).
-        `on_budget(rows)`, if given, gets each budget's rows as soon as it is reached."""
+        `on_budget(rows)`, if given, gets each budget's rows as soon as it is reached (and,
+        when the lab resumes, the rows reached before it stopped, first).
+        `checkpoints`: where the lab's state is kept between rounds (`lab.resume`); a state
+        found there is resumed."""
         cfg = self.cfg
+        t0 = time.perf_counter()
         keys = jnp.stack([jax.random.PRNGKey(s) for s in cfg.seeds])
         ctx = self.seed_contexts(keys)
         if cfg.needs_world_model:
@@ -161,43 +167,87 @@ class Lab(CellRounds):
             schedule = [[(b, b)] for b in cfg.budgets]
         else:
             schedule = [cfg.rounds()]
-        rows = []
-        for rounds in schedule:
-            capacity = rounds[-1][1]
-            shared = [cfg.rules[i] for i in cfg.shared_rules]
-            groups = ([_Group("shared", shared, self.init_cells(keys, capacity),
-                              self._shared_step)] if shared else [])
-            groups += [_Group(name, [name], _broadcast_cells(partial(
-                rule.init, capacity=capacity, obs_size=self.obs_size, act_size=self.act_size,
-                lab=cfg), keys, 1), partial(self._own_step, name, rule))
-                for name, rule in cfg.own_rules]
-            queries = capacity if cfg.one_shot else cfg.queries_per_round
+        state = self._resumed(checkpoints, progress, on_budget, schedule)
+        rows = list(state.rows) if state else []
+        last_save = time.perf_counter()
+        for run, rounds in enumerate(schedule):
+            if state is not None and run < state.schedule:
+                continue
+            groups = self._groups(keys, capacity=rounds[-1][1])
+            start = 0
+            if state is not None and run == state.schedule and state.next_round > 0:
+                for group, leaves in zip(groups, state.cells, strict=True):
+                    group.cells = resume.restore(group.cells, leaves)
+                start = state.next_round
+            queries = rounds[-1][1] if cfg.one_shot else cfg.queries_per_round
             labels_after = np.cumsum([n for n, _ in rounds])  # labels stored after each round
-            for i, (n, budget) in enumerate(rounds):
-                by_rule = {}  # rule -> (predictions [S, ...], metrics {name: [S]})
-                for group in groups:
-                    group.cells, m = group.step(group.cells, ctx, n, i == 0, queries,
-                                                labels_after[i])
-                    if budget is not None:
-                        pred = self.predict_cells(group.cells, f"{group.name}/predict")
-                        by_rule |= {r: (pred[:, ri], {k: v[:, ri] for k, v in m.items()})
-                                    for ri, r in enumerate(group.rules)}
-                if budget is None:
-                    continue
-                reached = []
-                for si, seed in enumerate(cfg.seeds):
-                    for rule in cfg.rules:
-                        pred, m = by_rule[rule]
-                        reached.append(dict(seed=seed, rule=rule, budget=budget,
-                                            prediction=pred[si],
-                                            **{k: v[si].item() for k, v in m.items()}))
+            for i, (n, budget) in enumerate(rounds[start:], start):
+                reached = self._round(groups, ctx, n, i == 0, queries, labels_after[i], budget)
                 rows += reached
+                after = (run, i + 1) if i + 1 < len(rounds) else (run + 1, 0)
+                if checkpoints is not None and after[0] < len(schedule) and (
+                        reached or time.perf_counter() - last_save >= checkpoints.every_s):
+                    # written before the budget's rows leave, so they are never lost
+                    checkpoints.save(resume.LabState(
+                        *after, cells=[jax.tree.leaves(jax.device_get(g.cells)) for g in groups]
+                        if after[0] == run else [], rows=rows, adam_steps=self.adam_steps,
+                        seconds=self.seconds, wall_seconds=self.wall_seconds(t0)))
+                    last_save = time.perf_counter()
+                if not reached:
+                    continue
                 if on_budget is not None:
                     on_budget(reached)
                 progress(f"{budget} labels: {len(cfg.seeds)} seeds x {len(cfg.rules)} rules, "
                          f"{self.adam_steps} Adam steps, {sum(self.seconds.values()):.0f} s "
                          f"+ {sum(self.compile_seconds.values()):.0f} s compiling")
         return rows
+
+    def _round(self, groups, ctx, n, first, queries, labels, budget) -> list[dict]:
+        """One round of every group's cells (updated in place) -> the rows of the budget it
+        reaches ([] when it reaches none)."""
+        by_rule = {}  # rule -> (predictions [S, ...], metrics {name: [S]})
+        for group in groups:
+            group.cells, m = group.step(group.cells, ctx, n, first, queries, labels)
+            if budget is not None:
+                pred = self.predict_cells(group.cells, f"{group.name}/predict")
+                by_rule |= {r: (pred[:, ri], {k: v[:, ri] for k, v in m.items()})
+                            for ri, r in enumerate(group.rules)}
+        if budget is None:
+            return []
+        return [dict(seed=seed, rule=rule, budget=budget, prediction=by_rule[rule][0][si],
+                     **{k: v[si].item() for k, v in by_rule[rule][1].items()})
+                for si, seed in enumerate(self.cfg.seeds) for rule in self.cfg.rules]
+
+    def _resumed(self, checkpoints, progress, on_budget, schedule) -> resume.LabState | None:
+        """The state `checkpoints` keeps (None: none), its counters taken over and its rows
+        handed to `on_budget`."""
+        state = checkpoints.load() if checkpoints is not None else None
+        if state is None:
+            return None
+        self.adam_steps, self.wall_before = state.adam_steps, state.wall_seconds
+        self.seconds = {k: state.seconds.get(k, 0.0) + self.seconds.get(k, 0.0)
+                        for k in {**state.seconds, **self.seconds}}
+        progress(f"resuming at round {state.next_round + 1} of "
+                 f"{len(schedule[state.schedule])} with {len(state.rows)} rows reached")
+        if state.rows and on_budget is not None:
+            on_budget(list(state.rows))
+        return state
+
+    def wall_seconds(self, t0: float) -> float:
+        """Seconds this lab has run since `t0`, the runs before a resume included."""
+        return self.wall_before + time.perf_counter() - t0
+
+    def _groups(self, keys: jax.Array, capacity: int) -> list[_Group]:
+        """The program groups of a run whose stores hold `capacity` pairs: the shared
+        program's rules, then each own-program rule, with their fresh cells."""
+        cfg = self.cfg
+        shared = [cfg.rules[i] for i in cfg.shared_rules]
+        groups = ([_Group("shared", shared, self.init_cells(keys, capacity),
+                          self._shared_step)] if shared else [])
+        return groups + [_Group(name, [name], _broadcast_cells(partial(
+            rule.init, capacity=capacity, obs_size=self.obs_size, act_size=self.act_size,
+            lab=cfg), keys, 1), partial(self._own_step, name, rule))
+            for name, rule in cfg.own_rules]
 
     @property
     def _feed(self) -> str:

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hprior_jax import presets
+from hprior_jax import dir_lock, presets
+from hprior_jax.lab import resume as lab_resume
 from hprior_jax.lab import seed_world_model
 from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, UNLABELLED_SEGMENTS,
                                    WORLD_MODEL_CREDITS, GivenLabels, LabConfig)
@@ -222,7 +223,7 @@ def report_notes(data: Dataset, diagnostics: list[dict]) -> list[str]:
 
 def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
             given: GivenLabels | None = None, reuse_world_models: bool = True,
-            contrasts=()) -> dict:
+            contrasts=(), resume: bool = False, checkpoint_every_s: float = 600.0) -> dict:
     """Runs the sweep; writes OUT/run_info.json (time, memory, settings), the report
     (results.csv with every (rule, budget, seed), summary.csv, report.md, PNGs; `contrasts`:
     the pre-registered ones, experiments.contrasts) and predictions.npz (every cell's
@@ -231,9 +232,30 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
     `given`: labels given beforehand (a person's) instead of the teacher's.
     `reuse_world_models`: the seeds' world models come from the lab cache when a lab of the
     same dataset, seeds and world-model settings trained them (`world_model_cache`), and
-    are kept there when trained here."""
+    are kept there when trained here.
+    `resume`: go on from the state a stopped lab left in OUT (OUT/lab_state.npz, written
+    between rounds at most `checkpoint_every_s` apart and at every budget, removed when the
+    lab ends); without it such a state is an error, not overwritten. One process at a time
+    writes OUT."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    checkpoints = lab_resume.Checkpoints(out / lab_resume.STATE_NAME,
+                                         lab_resume.fingerprint(cfg, data, given),
+                                         checkpoint_every_s)
+    with dir_lock.DirLock(out):
+        if resume:
+            checkpoints.check()  # another lab's state: refused before any work
+        elif checkpoints.path.exists():
+            raise FileExistsError(f"{out} holds a lab that stopped before its end: add "
+                                  "--resume to go on from where it stopped, or choose "
+                                  "another --out")
+        info = _run(data, cfg, out, progress, given, reuse_world_models, contrasts,
+                    checkpoints)
+        checkpoints.discard()
+    return info
+
+
+def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpoints) -> dict:
+    """run_lab's work, in OUT locked."""
     t0 = time.perf_counter()
     cached = seed_world_model.cache_path(cfg, data) if (
         reuse_world_models and cfg.needs_world_model) else None
@@ -248,8 +270,8 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
         write_report(rows, out, title=title, contrasts=contrasts,
                      notes=report_notes(data, lab.diagnostics))
 
-    lab.run(progress, on_budget=report_budget)
-    wall = time.perf_counter() - t0
+    lab.run(progress, on_budget=report_budget, checkpoints=checkpoints)
+    wall = lab.wall_before + time.perf_counter() - t0
     cells = len(cfg.seeds) * len(cfg.rules)
     info = {
         "task": data.task, "dataset": data.info, "wall_seconds": round(wall, 1),
