@@ -73,6 +73,12 @@ class RunConfig:
     under the mocap weld; the scene that moves like metaworld's, see tasks/metaworld/sawyer.py),
     `free` the free-floating hand of the first ports. Runs written before this option restore
     with `free`, the scene they were trained on."""
+    wrist: Literal["task", "faithful"] = "task"
+    """MetaWorld tasks: `task` the port's registered wrist collider, `faithful` the slower one
+    with which a port whose registered scene does not move like metaworld's does (button_press:
+    convex pieces of metaworld's wrist mesh, every contact slot: return x1.02 of metaworld's
+    under its scripted policy against x1.30, at about a fifth of the env steps/s; needs
+    `pip install -e ".[coacd]"`); the other ports' registered scenes already do."""
     compile_level: Literal["task", "xla", "0", "1", "2", "3"] = "task"
     """XLA's backend optimisation level for the run's programs: `task` the task's
     (`tasks.TaskInfo.compile_level`: 1 where it measured a sooner first env step at the same
@@ -109,6 +115,10 @@ class RunConfig:
             raise ValueError(f"--contact-cap {self.contact_cap!r}: task or none")
         if self.hand not in ("arm", "free"):
             raise ValueError(f"--hand {self.hand!r}: arm or free")
+        if self.wrist not in ("task", "faithful"):
+            raise ValueError(f"--wrist {self.wrist!r}: task or faithful")
+        if self.wrist == "faithful" and self.hand == "free":
+            raise ValueError("--wrist faithful is a collider of the arm scene, not of --hand free")
         if self.compile_level not in ("task", "xla", "0", "1", "2", "3"):
             raise ValueError(f"--compile-level {self.compile_level!r}: task, xla or 0-3")
         if self.replay_capacity < 0:

@@ -313,8 +313,8 @@ def test_grid_passes_eval_budget_and_contacts_as_overrides(tmp_path, monkeypatch
                      "all", "--contact-cap", "none", "--eval-every", "3000",
                      "--capture-video", "4", "--out", str(tmp_path)]) == 0
     assert seen == [{"contacts": "floor", "contact_cap": "task", "hand": "arm",
-                     "capture_video": 0},
-                    {"contacts": "all", "contact_cap": "none", "hand": "arm",
+                     "wrist": "task", "capture_video": 0},
+                    {"contacts": "all", "contact_cap": "none", "hand": "arm", "wrist": "task",
                      "num_eval_episodes": 5, "eval_every": 3000, "capture_video": 4}]
     # each physics option reaches only the tasks of its domain
     physics = {"contacts": "all", "contact_cap": "none", "hand": "free"}
@@ -322,6 +322,12 @@ def test_grid_passes_eval_budget_and_contacts_as_overrides(tmp_path, monkeypatch
     assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("floor", "none", "free")
     cfg = grid.run_config(tmp_path, "cheetah_run", "sac", (1,), "smoke", physics)
     assert (cfg.contacts, cfg.contact_cap, cfg.hand) == ("all", "none", "arm")
+    physics = {"contact_cap": "none", "wrist": "faithful"}
+    cfg = grid.run_config(tmp_path, "button_press", "sac", (1,), "smoke", physics)
+    assert (cfg.contact_cap, cfg.wrist) == ("none", "faithful")
+    assert grid.run_config(tmp_path, "cheetah_run", "sac", (1,), "smoke", physics).wrist == "task"
+    with pytest.raises(ValueError, match="--hand free"):
+        grid.run_config(tmp_path, "button_press", "sac", (1,), "smoke", {**physics, "hand": "free"})
 
 
 def test_grid_and_train_share_the_preset_flag_and_default(tmp_path, monkeypatch):

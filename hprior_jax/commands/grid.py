@@ -36,6 +36,8 @@ def grid(argv: list[str]) -> int:
                              "`hprior train --contact-cap`")
     parser.add_argument("--hand", default="arm", choices=("arm", "free"),
                         help="MetaWorld scene, as `hprior train --hand`")
+    parser.add_argument("--wrist", default="task", choices=("task", "faithful"),
+                        help="MetaWorld wrist collider, as `hprior train --wrist`")
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--devices", type=int, default=None,
                         help="devices to use (default: all); runs train side by side, each "
@@ -57,7 +59,7 @@ def grid(argv: list[str]) -> int:
     from hprior_jax.presets import EVAL_BUDGETS
 
     overrides = dict(EVAL_BUDGETS[args.eval_budget], contacts=args.contacts,
-                     contact_cap=args.contact_cap, hand=args.hand,
+                     contact_cap=args.contact_cap, hand=args.hand, wrist=args.wrist,
                      capture_video=args.capture_video)
     overrides.update({k: v for k, v in (("steps", args.steps), ("eval_every", args.eval_every))
                       if v is not None})

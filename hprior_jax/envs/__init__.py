@@ -132,14 +132,17 @@ PHYSICS_OPTIONS = {
     "hand": PhysicsOption(
         ("metaworld",), "arm", "free", lambda value: {"arm": False, "wrist": "box"},
         "--{name} {value}: only the MetaWorld ports have a Sawyer hand"),
+    "wrist": PhysicsOption(
+        ("metaworld",), "task", "task", lambda value: {"wrist": value},
+        "--{name} {value}: only the MetaWorld ports have a wrist collider to choose"),
 }
 
 
 def task_options(cfg) -> dict:
     """The port options a run configuration asks for beyond the ports' defaults (so the
     default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control,
-    `arm=False` (`hand="free"`) on MetaWorld, `max_contacts=None` (`contact_cap="none"`) on
-    both."""
+    `arm=False` (`hand="free"`) and `wrist="faithful"` on MetaWorld, `max_contacts=None`
+    (`contact_cap="none"`) on both."""
     domain = task_info(cfg.task).domain
     options = {}
     for name, option in PHYSICS_OPTIONS.items():

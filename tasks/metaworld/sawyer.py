@@ -59,6 +59,9 @@ class SawyerTask(Task):
     goal_low: tuple | None = None  # goal_space; None -> hand bounds (metaworld default)
     goal_high: tuple | None = None
     wrist: str | int = "box"  # the task's wrist collider (build_scene); a task may pick a hull
+    # the slower wrist collider with which a port whose registered scene does not move like
+    # metaworld's does (`wrist="faithful"`; None: the registered scene already does)
+    faithful_wrist: str | None = None
     max_contacts: int | None = None  # MJX's contact cap (build_scene); None: every slot
 
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
@@ -79,10 +82,14 @@ class SawyerTask(Task):
 
         wrist="mesh" or keep_cylinders=True build metaworld's exact shapes for C MuJoCo
         diagnostics (`mj_model`); MJX cannot collide them, so `model` (the MJX step's) is
-        then the box-wrist scene's: right for kinematics, not for contacts."""
+        then the box-wrist scene's: right for kinematics, not for contacts.
+        wrist="faithful": `faithful_wrist` with every contact slot (where the task has one;
+        the registered scene otherwise)."""
         self.partially_observable = partially_observable
         self.arm = arm
-        self.wrist = self.wrist if wrist is None else wrist
+        if wrist == "faithful" and self.faithful_wrist is not None:
+            wrist, max_contacts = self.faithful_wrist, None  # measured without a cap
+        self.wrist = self.wrist if wrist in (None, "faithful") else wrist
         self.max_contacts = self.max_contacts if max_contacts == "task" else max_contacts
         self._build_models(solver_iterations, ls_iterations, metaworld_invweights,
                            keep_cylinders)

@@ -48,6 +48,11 @@ class SceneSpec:
     # block against a box or hull wrist; the mesh wrist or its pieces, which reach into their
     # gaps, pair with the geoms themselves instead
     solid_stand_ins: tuple = ()
+    # (wrist option, ((piece index, object geoms as in object_geoms), ...)): with that pieces
+    # wrist, each listed piece pairs only with those geoms, the ones it touched in a contact
+    # census of metaworld's scripted episodes (MJX evaluates every listed pair every step,
+    # touching or not); pieces not listed keep every pair
+    piece_partners: tuple = ()
 
 
 def metaworld_xml_path(name: str) -> str:
@@ -123,6 +128,13 @@ def _wrist_pairs(pairs: list, wrist_geoms: list[str]) -> list[tuple[str, str]]:
         else:
             out += [(w, b) if a == "wrist" else (a, w) for w in wrist_geoms]
     return out
+
+
+def _partners_only(pairs: list, partners: dict[str, set]) -> list[tuple[str, str]]:
+    """`pairs` without those of a piece in `partners` ({piece geom: its partner geoms})
+    with a geom that is not its partner."""
+    return [(a, b) for a, b in pairs
+            if not (a in partners and b not in partners[a] or b in partners and a not in partners[b])]
 
 
 def _load_named(xml: str) -> tuple[mujoco.MjSpec, mujoco.MjModel, mujoco.MjData]:
@@ -210,6 +222,9 @@ def build_scene(scene: SceneSpec, arm: bool = True, wrist: str | int = "box",
     if "wrist" in used:
         wrist_geoms = colliders.add_wrist(spec, full, full_data, wrist, wrist_src)
         pair_names = _wrist_pairs(pair_names, wrist_geoms)
+        partners = dict(scene.piece_partners).get(wrist, ())
+        pair_names = _partners_only(pair_names, {
+            wrist_geoms[i]: set(refs.expand(geoms)) for i, geoms in partners})
         param_src.update({w: wrist_src for w in wrist_geoms})
     for name, body, gtype, size, pos, quat, _ in scene.fixtures:
         if name not in used:  # a stand-in the wrist does without

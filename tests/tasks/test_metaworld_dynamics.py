@@ -110,6 +110,32 @@ def test_wrist_pieces_span_the_mesh_and_meet_the_box_slab_by_slab():
     np.testing.assert_allclose(every.max(0), mesh.max(0), atol=2e-3)
 
 
+def test_a_faithful_wrist_pairs_each_piece_with_what_it_touches_and_others_keep_their_scene():
+    """`wrist="faithful"`: button_press's coacd pieces, uncapped, the front piece paired with
+    the box's 4 slabs, the flange and the cap, the other with the cap alone (the census's
+    partners; never the rod); a port without a faithful wrist keeps its registered scene."""
+    import mujoco
+
+    task = make_task("button_press", wrist="faithful")
+    m = task.mj_model
+    assert task.max_contacts is None
+    pairs = {(m.geom(a).name, m.geom(b).name) for a, b in zip(m.pair_geom1, m.pair_geom2)}
+    boxes = lambda body: {m.geom(g).name for g in range(m.ngeom) if m.geom_bodyid[g]
+                          == m.body(body).id and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX}
+    slabs = boxes("buttonbox")  # its planes are fixtures
+    rod_flange_cap = {m.geom(g).name for g in range(m.ngeom)
+                      if m.geom_bodyid[g] == m.body("button").id}
+    cap = {b for a, b in pairs if a == "box_face"}
+    flange = boxes("button") - cap
+    partners = lambda piece: {b for a, b in pairs if a == piece} | {a for a, b in pairs
+                                                                   if b == piece}
+    assert len(slabs) == 4 and len(cap) == len(flange) == 1 and len(rod_flange_cap) == 3
+    assert partners("wrist_0") == slabs | flange | cap and partners("wrist_1") == cap
+    drawer = make_task("drawer_open", wrist="faithful")
+    assert drawer.mj_model.npair == tasks.make("drawer_open").mj_model.npair
+    assert drawer.wrist == tasks.make("drawer_open").wrist
+
+
 def test_drawer_stops_where_metaworld_stops():
     """Closed loop, the port's scene stepped by C MuJoCo (no MJX compile; the MJX port runs
     the same model, see the slow test): over the first 150 steps (reach, hook, pull to the
