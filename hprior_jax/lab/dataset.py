@@ -26,6 +26,7 @@ import numpy as np
 from hprior_jax import presets
 from hprior_jax.buffers.episodes import split_column
 from hprior_jax.envs import task_info
+from hprior_jax.lab.npz_files import write_atomically
 from hprior_jax.methods import registry
 from hprior_jax.runs.build import build_engine, train
 from hprior_jax.runs.restore import restore_run
@@ -59,16 +60,12 @@ class Dataset:
         return self.train_reward.shape[1]
 
     def save(self, path: Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                   if isinstance(getattr(self, f.name), np.ndarray)}
         arrays |= {f"{PHYSICS}{k}": v for k, v in (self.train_physics or {}).items()}
         meta = dict(task=self.task, segment_len=self.segment_len, info=self.info)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, meta=np.asarray(json.dumps(meta)), **arrays)
-        os.replace(tmp, path)  # a kill mid-write leaves no half file under the final name
-        return path
+        return write_atomically(path, dict(meta=np.asarray(json.dumps(meta)), **arrays),
+                                compressed=True)
 
     @staticmethod
     def load(path: Path) -> "Dataset":

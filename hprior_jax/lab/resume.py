@@ -20,6 +20,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from hprior_jax.lab.npz_files import tree_of, write_atomically
+
 STATE_NAME = "lab_state.npz"
 
 
@@ -56,7 +58,6 @@ def fingerprint(cfg, data, given=None) -> str:
 
 def save(path: Path, lab: str, state: LabState) -> Path:
     """`state` of the lab with fingerprint `lab` to `path`, atomically."""
-    path = Path(path)
     rows = [{k: v for k, v in r.items() if k != "prediction"} for r in state.rows]
     meta = dict(lab=lab, schedule=state.schedule, next_round=state.next_round, rows=rows,
                 groups=[len(leaves) for leaves in state.cells], adam_steps=state.adam_steps,
@@ -65,11 +66,8 @@ def save(path: Path, lab: str, state: LabState) -> Path:
               for g, leaves in enumerate(state.cells) for i, x in enumerate(leaves)}
     if state.rows:
         arrays["prediction"] = np.stack([r["prediction"] for r in state.rows])
-    tmp = path.with_suffix(".tmp.npz")
-    with open(tmp, "wb") as f:  # a file object: np.savez would append .npz to the name
-        np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
-    tmp.replace(path)
-    return path
+    return write_atomically(path, dict(
+        meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays))
 
 
 def load(path: Path, lab: str, cells: bool = True) -> LabState | None:
@@ -97,11 +95,10 @@ def load(path: Path, lab: str, cells: bool = True) -> LabState | None:
 
 def restore(like, leaves: list[np.ndarray]):
     """`leaves` as a tree shaped like `like` (freshly initialised cells), each leaf checked."""
-    want, treedef = jax.tree.flatten(like)
-    if len(want) != len(leaves) or any(
-            a.shape != x.shape or a.dtype != x.dtype for a, x in zip(leaves, want)):
+    tree = tree_of(like, leaves)
+    if tree is None:
         raise StateMismatch("the saved cells do not fit this lab's cells")
-    return jax.tree.unflatten(treedef, [jax.numpy.asarray(a) for a in leaves])
+    return tree
 
 
 class Checkpoints:

@@ -23,6 +23,7 @@ from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, U
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
+from hprior_jax.lab.npz_files import write_atomically
 from hprior_jax.lab.report import write_report
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
@@ -181,13 +182,11 @@ def score(rows: list[dict], data: Dataset) -> list[dict]:
 def save_predictions(path: Path, rows: list[dict]) -> Path:
     """Every cell's held-out predictions r̂ [E, L] (compressed, float32) beside its seed,
     rule and budget, so a later metric needs no retraining; written whole, then renamed."""
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, seed=np.asarray([r["seed"] for r in rows]),
-                        rule=np.asarray([r["rule"] for r in rows]),
-                        budget=np.asarray([r["budget"] for r in rows]),
-                        prediction=np.stack([r["prediction"] for r in rows]).astype(np.float32))
-    tmp.replace(path)
-    return path
+    return write_atomically(path, dict(
+        seed=np.asarray([r["seed"] for r in rows]), rule=np.asarray([r["rule"] for r in rows]),
+        budget=np.asarray([r["budget"] for r in rows]),
+        prediction=np.stack([r["prediction"] for r in rows]).astype(np.float32)),
+        compressed=True)
 
 
 def _latent_note(diagnostics: list[dict]) -> str:
