@@ -341,7 +341,7 @@ class _Runner:
     def lab(self, _=None):
         """run_lab with part 1's world models, handed to it through its world-model cache (a
         temporary folder): the lab config says the schedule they trained on."""
-        from hprior_jax.lab import seed_world_model
+        from hprior_jax.lab import world_model_cache
         from hprior_jax.lab.contrasts import Contrast
         from hprior_jax.lab.sweep import run_lab
 
@@ -368,7 +368,7 @@ class _Runner:
         with tempfile.TemporaryDirectory() as cache:
             os.environ["HPRIOR_LAB_CACHE"] = cache
             try:
-                seed_world_model.save(seed_world_model.cache_path(cfg, self.data),
+                world_model_cache.save(world_model_cache.cache_path(cfg, self.data),
                                       models.seed_contexts(len(cfg.seeds), self.profiles))
                 info = run_lab(self.data, cfg, run.out / "lab", progress=progress,
                                contrasts=contrasts)

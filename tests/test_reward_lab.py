@@ -205,7 +205,10 @@ def test_a_stopped_lab_resumes_to_the_rows_of_a_lab_that_never_stopped(data, tmp
         run(stopped)
     with pytest.raises(resume.StateMismatch):
         sweep.run_lab(data, dataclasses.replace(cfg, seeds=(0,)), stopped, resume=True, **quiet)
-    run(stopped, resume=True)
+    said = []
+    run(stopped, resume=True, progress=said.append)  # a line a round, from the fourth on
+    assert [line.split(":")[0] for line in said] == [
+        "resuming at round 4 of 5 with 6 rows reached", "round 4 of 5", "50 labels"]
     assert not (stopped / resume.STATE_NAME).exists()
     assert (stopped / "results.csv").read_text() == (tmp_path / "whole/results.csv").read_text()
     with np.load(stopped / "predictions.npz") as a, \
@@ -319,7 +322,7 @@ def test_a_labs_world_models_are_kept_and_the_next_lab_of_the_same_settings_load
     import jax
     import jax.numpy as jnp
 
-    from hprior_jax.lab import seed_world_model as cache
+    from hprior_jax.lab import world_model_cache as cache
 
     # with standardised world-model inputs, so the kept context holds the scaler too
     cfg = tiny(rules=("prior",), credits=("attention",), seeds=(0,), wm_normalize_obs=True)

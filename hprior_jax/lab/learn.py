@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hprior_jax.lab import resume, seed_world_model
+from hprior_jax.lab import resume, seed_world_model, world_model_cache
 from hprior_jax.lab.config import (CREDITS, NO_PRIOR, Episodes, GivenLabels,
                                    LabConfig, RuleArgs)
 from hprior_jax.lab.dataset import Dataset
@@ -38,7 +38,7 @@ from hprior_jax.prior.loss import target_shift
 class Lab(CellRounds):
     def __init__(self, cfg: LabConfig, data: Dataset, given: GivenLabels | None = None,
                  world_model_cache: Path | None = None):
-        """`world_model_cache`: an .npz (`world_model_cache.cache_path`) the seeds' world
+        """`world_model_cache`: an .npz (`lab.world_model_cache.cache_path`) the seeds' world
         models are loaded from when it holds them, else trained and written to."""
         if given is not None and not (cfg.one_shot and cfg.budgets == (len(given),)):
             raise ValueError(f"given labels train once on all {len(given)}: one_shot=True "
@@ -96,14 +96,14 @@ class Lab(CellRounds):
         fn = jax.vmap(self.seed_context, (0, None))
         path = self.world_model_cache
         if path is not None:
-            ctx = seed_world_model.load(path, jax.eval_shape(fn, keys, self.train))
+            ctx = world_model_cache.load(path, jax.eval_shape(fn, keys, self.train))
             if ctx is not None:
                 self.world_model_loaded = True
                 return ctx
         ctx = self._timed("world_model", self._compiled("world_model", fn, keys, self.train),
                           keys, self.train)
         if path is not None:
-            seed_world_model.save(path, ctx)
+            world_model_cache.save(path, ctx)
         return ctx
 
     # -- compiled over cells [S, R] -----------------------------------------------------
@@ -193,7 +193,9 @@ class Lab(CellRounds):
                         if after[0] == run else [], rows=rows, adam_steps=self.adam_steps,
                         seconds=self.seconds, wall_seconds=self.wall_seconds(t0)))
                     last_save = time.perf_counter()
-                if not reached:
+                if not reached:  # a line a round: a lab's budgets can be hours apart
+                    progress(f"round {i + 1} of {len(rounds)}: {labels_after[i]} labels, "
+                             f"{self.wall_seconds(t0):.0f} s")
                     continue
                 if on_budget is not None:
                     on_budget(reached)

@@ -17,7 +17,7 @@ import numpy as np
 
 from hprior_jax import dir_lock, presets
 from hprior_jax.lab import resume as lab_resume
-from hprior_jax.lab import seed_world_model
+from hprior_jax.lab import world_model_cache
 from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, UNLABELLED_SEGMENTS,
                                    WORLD_MODEL_CREDITS, GivenLabels, LabConfig)
 from hprior_jax.lab.dataset import Dataset
@@ -256,7 +256,7 @@ def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
 def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpoints) -> dict:
     """run_lab's work, in OUT locked."""
     t0 = time.perf_counter()
-    cached = seed_world_model.cache_path(cfg, data) if (
+    cached = world_model_cache.cache_path(cfg, data) if (
         reuse_world_models and cfg.needs_world_model) else None
     lab = Lab(cfg, data, given, world_model_cache=cached)
     rows, predicted = [], []
