@@ -249,16 +249,41 @@ def test_within_episode_metrics_see_credit_that_the_pooled_ones_hide():
 
 
 def test_report_warns_when_the_world_model_does_not_predict_and_says_where_it_fails():
-    from types import SimpleNamespace
+    from hprior_jax.lab.report_notes import report_notes
 
-    from hprior_jax.lab.sweep import report_notes
-
-    rng = np.random.default_rng(0)
-    data = SimpleNamespace(test_reward=rng.normal(size=(3, 100)), segment_len=10)
     seed = {"wm/skill_vs_persistence": -50.0, "wm/latent_skill_vs_persistence": 0.4,
             "wm/reconstruction_error": 0.2, "wm/persistence_error": 0.004}
-    warned = report_notes(data, [seed, seed])[0]
+    ceiling = {"pearson": 0.9, "episode_pearson": 0.8}
+    warned, said = report_notes([seed, seed], ceiling, 50)
     assert "does not predict" in warned and "-50.000" in warned
     assert "latent space its skill over persistence is +0.400" in warned and "0.2 against" in warned
-    predicting = report_notes(data, [{**seed, "wm/skill_vs_persistence": 0.3}] * 2)
+    assert "50-step moving mean): Pearson 0.900, within-episode Pearson 0.800" in said
+    predicting = report_notes([{**seed, "wm/skill_vs_persistence": 0.3}] * 2, ceiling, 50)
     assert not any("does not predict" in n for n in predicting)
+
+
+def test_seed_shards_merge_into_one_report_with_their_world_model_notes(tmp_path):
+    """Two seed shards of one lab: the merged report warns from the mean skill over every
+    seed (each shard alone would say otherwise) and writes their diagnostics as one file; two
+    labs of the same seeds (two world models) keep their diagnostics apart."""
+    import json
+
+    from hprior_jax.lab.report_notes import read_diagnostics, write_diagnostics
+
+    rows = _synthetic_rows()
+    skills = {0: 0.5, 1: -2.0, 2: 0.1, 3: 0.2, 4: 0.3}  # mean -0.18: does not predict
+    for name, seeds in (("a", (0, 1)), ("b", (2, 3, 4))):
+        write_report([r for r in rows if r["seed"] in seeds], tmp_path / name)
+        write_diagnostics(tmp_path / name / "diagnostics.csv",
+                          [{"seed": s, "wm/skill_vs_persistence": skills[s]} for s in seeds])
+        (tmp_path / name / "run_info.json").write_text(json.dumps(dict(
+            uniform_credit_ceiling={"pearson": 0.9, "episode_pearson": 0.8}, segment_len=50)))
+    paths = [str(tmp_path / n / "results.csv") for n in ("a", "b")]
+    text = lab_report.main([*paths, str(tmp_path / "both")]).read_text()
+    assert "5 seeds per (task, rule, budget)" in text
+    assert "does not predict** (skill over persistence -0.180, mean of 5 seeds" in text
+    assert "within-episode Pearson 0.800" in text
+    assert [d["seed"] for d in read_diagnostics(tmp_path / "both" / "diagnostics.csv")] == [
+        0, 1, 2, 3, 4]
+    text = lab_report.main([paths[0], paths[0], str(tmp_path / "twice")]).read_text()
+    assert "does not predict" not in text and not (tmp_path / "twice" / "diagnostics.csv").exists()

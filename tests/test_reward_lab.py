@@ -509,6 +509,22 @@ def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, cap
     assert cli.main(argv[:-2] + ["--dataset-only"]) == 0
     assert "dataset" in capsys.readouterr().out and len(list(cached[0].parent.iterdir())) == 1
 
+    # the same lab as two seed shards, merged: the same rows as the lab of both seeds
+    for first in ("0", "1"):
+        assert cli.main(argv[:8] + ["1", "--first-seed", first] + argv[9:-1]
+                        + [str(tmp_path / f"shard{first}")]) == 0
+    from hprior_jax.lab import report
+
+    report.main([str(tmp_path / f"shard{i}" / "results.csv") for i in (0, 1)]
+                + [str(tmp_path / "merged")])
+    whole, merged = (by_cell(report.read_results(p / "results.csv"))
+                     for p in (out, tmp_path / "merged"))
+    assert whole.keys() == merged.keys() and {seed for seed, *_ in merged} == {0, 1}
+    for cell, row in whole.items():  # up to a vmapped program's rounding
+        assert merged[cell]["heldout_accuracy"] == pytest.approx(row["heldout_accuracy"],
+                                                                 abs=0.02), cell
+        assert merged[cell]["pearson"] == pytest.approx(row["pearson"], abs=1e-3), cell
+
 
 def test_a_dataset_is_made_only_from_a_sac_run(tmp_path):
     """`--dataset-from-run` refuses another method's run before reading any checkpoint."""

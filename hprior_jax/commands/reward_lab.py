@@ -52,9 +52,10 @@ def reward_lab(argv: list[str]) -> int:
     if args.dataset_only:
         return 0
     if args.seeds < 10:
-        print(f"warning: {args.seeds} seeds; the lab's comparisons want 10 or more",
-              file=sys.stderr)
-    cfg = lab_config(data, args.preset, args.rules, args.seeds, args.budgets,
+        print(f"warning: {args.seeds} seeds; the lab's comparisons want 10 or more (the seed "
+              f"shards of one lab merge: `python -m hprior_jax.lab.report`)", file=sys.stderr)
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    cfg = lab_config(data, args.preset, args.rules, seeds, args.budgets,
                      args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam,
                      args.prior_set, args.tag)
     out = args.out or f"runs/reward_lab/{args.task}"
@@ -114,6 +115,12 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                              "sweep in one program); RULE~shift the shifted target form "
                              "α·(R̂ + T) − 1 (oracle~shift, prior~shift)")
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--first-seed", type=int, default=0,
+                        help="the lab's seeds are FIRST_SEED .. FIRST_SEED + SEEDS - 1: a "
+                             "seed's cells do not depend on the others', so a lab too long for "
+                             "one sitting runs as seed shards (--seeds 5 --first-seed 5, ...) "
+                             "merged by `python -m hprior_jax.lab.report A/results.csv "
+                             "B/results.csv OUT`")
     parser.add_argument("--budgets", nargs="+", type=int, default=[25, 100, 400])
     parser.add_argument("--queries-per-round", type=int, default=None,
                         help="default: the preset's (10 DMC, 20 MetaWorld at reduced)")

@@ -32,6 +32,7 @@ import numpy as np
 
 from hprior_jax.lab import contrasts as contrast_tests
 from hprior_jax.lab.metrics import METRIC_LABEL, METRICS
+from hprior_jax.lab.report_notes import merged_notes
 from hprior_jax.lab.report_figures import plot_metric, png_name
 from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE
 from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison
@@ -339,7 +340,10 @@ def main(argv=None) -> Path:
     parser = argparse.ArgumentParser(
         prog="python -m hprior_jax.lab.report",
         description="Rebuild a reward-learning lab report from its raw results.csv, or merge "
-                    "the results.csv of several labs (same dataset and seeds) into one report.")
+                    "the results.csv of several labs into one report: labs of the same dataset "
+                    "and seeds (their rules side by side) or the seed shards of one lab "
+                    "(`hprior reward-lab --first-seed`; their world-model diagnostics "
+                    "and ceiling notes are merged from the files beside each results.csv).")
     parser.add_argument("paths", type=Path, nargs="+", metavar="RESULTS_CSV... OUT_DIR")
     parser.add_argument("--title", default=DEFAULT_TITLE)
     parser.add_argument("--pairs", nargs="+", default=(), metavar="A:B",
@@ -374,7 +378,8 @@ def main(argv=None) -> Path:
     if differing:
         print(f"{differing} rows found in several files differ in a metric: the first "
               "file's are kept", file=sys.stderr)
-    report = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts)
+    notes = merged_notes(args.paths[:-1], args.paths[-1])
+    report = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts, notes)
     print(report)
     return report
 

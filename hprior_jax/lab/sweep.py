@@ -6,7 +6,6 @@ trains its reward exactly as in an RL run of that preset, only on fixed data.
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import resource
@@ -25,6 +24,7 @@ from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
 from hprior_jax.lab.npz_files import write_atomically
 from hprior_jax.lab.report import write_report
+from hprior_jax.lab.report_notes import report_notes, write_diagnostics
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
@@ -189,37 +189,6 @@ def save_predictions(path: Path, rows: list[dict]) -> Path:
         compressed=True)
 
 
-def _latent_note(diagnostics: list[dict]) -> str:
-    """Where the decoded skill fails, whether the transformer predicts in its own latent space
-    and how much of the decoded error the observation model's reconstruction alone makes."""
-    if "wm/latent_skill_vs_persistence" not in diagnostics[0]:  # a cache of an older lab
-        return ""
-    mean = lambda k: np.mean([d[k] for d in diagnostics])
-    return (f" In latent space its skill over persistence is "
-            f"{mean('wm/latent_skill_vs_persistence'):+.3f}; the observation model's "
-            f"reconstruction error alone is {mean('wm/reconstruction_error'):.4g} against "
-            f"persistence's {mean('wm/persistence_error'):.4g}.")
-
-
-def report_notes(data: Dataset, diagnostics: list[dict]) -> list[str]:
-    """Paragraphs the report must show first: the world model's skill when it does not beat
-    persistence (then α is not evidence), and what uniform credit can reach at best."""
-    notes = []
-    skill = [d["wm/skill_vs_persistence"] for d in diagnostics]
-    if skill and np.mean(skill) <= 0:
-        notes.append(f"**WARNING: the world model does not predict** (skill over persistence "
-                     f"{np.mean(skill):+.3f}, mean of {len(skill)} seeds; "
-                     f"{sum(k > 0 for k in skill)} seeds above 0). Its α diagnostics and the "
-                     "rules that read it (prior, positional) are not evidence about what a "
-                     "predicting world model's α would do." + _latent_note(diagnostics))
-    ceiling = uniform_credit_ceiling(data.test_reward, data.segment_len)
-    notes.append(f"Uniform credit's ceiling on the held-out episodes (the true reward against "
-                 f"its own {data.segment_len}-step moving mean): Pearson "
-                 f"{ceiling['pearson']:.3f}, within-episode Pearson "
-                 f"{ceiling['episode_pearson']:.3f}.")
-    return notes
-
-
 def run_lab(data: Dataset, cfg: LabConfig, out: Path, progress=print,
             given: GivenLabels | None = None, reuse_world_models: bool = True,
             contrasts=(), resume: bool = False, checkpoint_every_s: float = 600.0) -> dict:
@@ -260,6 +229,7 @@ def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpo
         reuse_world_models and cfg.needs_world_model) else None
     lab = Lab(cfg, data, given, world_model_cache=cached)
     rows, predicted = [], []
+    ceiling = uniform_credit_ceiling(data.test_reward, data.segment_len)
     title = f"Reward-learning lab: {data.task}"
 
     def report_budget(reached: list[dict]) -> None:
@@ -267,7 +237,7 @@ def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpo
         save_predictions(out / "predictions.npz", predicted)
         rows.extend(score(reached, data))
         write_report(rows, out, title=title, contrasts=contrasts,
-                     notes=report_notes(data, lab.diagnostics))
+                     notes=report_notes(lab.diagnostics, ceiling, data.segment_len))
 
     lab.run(progress, on_budget=report_budget, checkpoints=checkpoints)
     wall = lab.wall_before + time.perf_counter() - t0
@@ -279,7 +249,7 @@ def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpo
         "world_model_cache": None if cached is None else dict(
             path=str(cached), loaded=lab.world_model_loaded),
         "cells": cells, "adam_steps": lab.adam_steps,
-        "uniform_credit_ceiling": uniform_credit_ceiling(data.test_reward, data.segment_len),
+        "uniform_credit_ceiling": ceiling, "segment_len": data.segment_len,
         "ms_per_adam_step_per_cell": round(1000 * lab.seconds.get("rounds", 0.0)
                                            / max(lab.adam_steps * cells, 1), 2),
         "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
@@ -289,9 +259,6 @@ def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpo
         names = [k for k in lab.diagnostics[0] if k != "seed"]
         info["world_model_diagnostics_mean"] = {
             k: round(float(np.mean([d[k] for d in lab.diagnostics])), 5) for k in names}
-        with open(out / "diagnostics.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=["seed", *names], lineterminator="\n")
-            writer.writeheader()
-            writer.writerows(lab.diagnostics)
+        write_diagnostics(out / "diagnostics.csv", lab.diagnostics)
     (out / "run_info.json").write_text(json.dumps(info, indent=2))
     return info

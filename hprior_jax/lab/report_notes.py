@@ -1,0 +1,81 @@
+"""The paragraphs a lab's report shows first: whether the world model predicts (else its α is
+not evidence) and what uniform credit can reach at best; also for a report merged from the
+seed shards of one lab (`hprior reward-lab --first-seed`), read from the files beside each
+shard's results.csv (diagnostics.csv, run_info.json)."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def report_notes(diagnostics: list[dict], ceiling: dict | None,
+                 segment_len: int | None) -> list[str]:
+    """`diagnostics`: the world model's, one dict per seed (empty when no rule reads it);
+    `ceiling`: `metrics.uniform_credit_ceiling` of the held-out episodes."""
+    notes = []
+    skill = [d["wm/skill_vs_persistence"] for d in diagnostics]
+    if skill and np.mean(skill) <= 0:
+        notes.append(f"**WARNING: the world model does not predict** (skill over persistence "
+                     f"{np.mean(skill):+.3f}, mean of {len(skill)} seeds; "
+                     f"{sum(k > 0 for k in skill)} seeds above 0). Its α diagnostics and the "
+                     "rules that read it (prior, positional) are not evidence about what a "
+                     "predicting world model's α would do." + _latent_note(diagnostics))
+    if ceiling is not None and segment_len is not None:
+        notes.append(f"Uniform credit's ceiling on the held-out episodes (the true reward "
+                     f"against its own {segment_len}-step moving mean): Pearson "
+                     f"{ceiling['pearson']:.3f}, within-episode Pearson "
+                     f"{ceiling['episode_pearson']:.3f}.")
+    return notes
+
+
+def _latent_note(diagnostics: list[dict]) -> str:
+    """Where the decoded skill fails, whether the transformer predicts in its own latent space
+    and how much of the decoded error the observation model's reconstruction alone makes."""
+    if "wm/latent_skill_vs_persistence" not in diagnostics[0]:  # a cache of an older lab
+        return ""
+    mean = lambda k: np.mean([d[k] for d in diagnostics])
+    return (f" In latent space its skill over persistence is "
+            f"{mean('wm/latent_skill_vs_persistence'):+.3f}; the observation model's "
+            f"reconstruction error alone is {mean('wm/reconstruction_error'):.4g} against "
+            f"persistence's {mean('wm/persistence_error'):.4g}.")
+
+
+def write_diagnostics(path: Path, diagnostics: list[dict]) -> None:
+    names = [k for k in diagnostics[0] if k != "seed"]
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["seed", *names], lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(diagnostics)
+
+
+def read_diagnostics(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return [{k: int(v) if k == "seed" else float(v) for k, v in row.items()}
+                for row in csv.DictReader(f)]
+
+
+def merged_notes(results_paths, out_dir: Path) -> list[str]:
+    """The notes of labs merged into one report, from the files beside their results.csv.
+    Diagnostics are merged only when every lab has them and no seed is in two labs (the seed
+    shards of one lab; labs of different world models keep theirs apart), and written to
+    OUT/diagnostics.csv; the ceiling is said only when every lab states the same one (the
+    same held-out episodes)."""
+    folders = [Path(p).parent for p in results_paths]
+    diagnostics = []
+    if all((f / "diagnostics.csv").exists() for f in folders):
+        per_lab = [read_diagnostics(f / "diagnostics.csv") for f in folders]
+        seeds = [d["seed"] for lab in per_lab for d in lab]
+        if len(seeds) == len(set(seeds)):
+            diagnostics = sorted((d for lab in per_lab for d in lab), key=lambda d: d["seed"])
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            write_diagnostics(Path(out_dir) / "diagnostics.csv", diagnostics)
+    infos = [json.loads((f / "run_info.json").read_text())
+             for f in folders if (f / "run_info.json").exists()]
+    ceilings = {json.dumps([i.get("uniform_credit_ceiling"), i.get("segment_len")])
+                for i in infos}
+    ceiling, segment_len = (json.loads(ceilings.pop()) if len(infos) == len(folders)
+                            and len(ceilings) == 1 else (None, None))
+    return report_notes(diagnostics, ceiling, segment_len)
