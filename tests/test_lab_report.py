@@ -285,5 +285,11 @@ def test_seed_shards_merge_into_one_report_with_their_world_model_notes(tmp_path
     assert "within-episode Pearson 0.800" in text
     assert [d["seed"] for d in read_diagnostics(tmp_path / "both" / "diagnostics.csv")] == [
         0, 1, 2, 3, 4]
+    assert "different datasets" not in text
     text = lab_report.main([paths[0], paths[0], str(tmp_path / "twice")]).read_text()
     assert "does not predict" not in text and not (tmp_path / "twice" / "diagnostics.csv").exists()
+    for name, digest in (("a", "d1"), ("b", "d2")):  # a shard built its dataset differently
+        info = tmp_path / name / "run_info.json"
+        info.write_text(json.dumps({**json.loads(info.read_text()), "dataset_digest": digest}))
+    text = lab_report.main([*paths, str(tmp_path / "mixed")]).read_text()
+    assert "these labs learned from different datasets** (digests d1, d2)" in text

@@ -4,6 +4,7 @@ the oracle credit and the metrics, and the oracle-credit control beats PEBBLE on
 so that it must (a check that the lab can detect a real effect). Three compiled round
 programs in all: the lab caches them by settings and shapes."""
 import dataclasses
+import json
 from functools import partial
 
 import numpy as np
@@ -517,6 +518,10 @@ def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, cap
 
     report.main([str(tmp_path / f"shard{i}" / "results.csv") for i in (0, 1)]
                 + [str(tmp_path / "merged")])
+    infos = [json.loads((tmp_path / f"shard{i}" / "run_info.json").read_text()) for i in (0, 1)]
+    assert {i["dataset_digest"] for i in infos} == {data.digest()}  # what the merge checks
+    assert dataclasses.replace(data, info={}).digest() == data.digest()  # not how it was made
+    assert dataclasses.replace(data, pair_label=1 - data.pair_label).digest() != data.digest()
     whole, merged = (by_cell(report.read_results(p / "results.csv"))
                      for p in (out, tmp_path / "merged"))
     assert whole.keys() == merged.keys() and {seed for seed, *_ in merged} == {0, 1}

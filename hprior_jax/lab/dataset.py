@@ -13,6 +13,7 @@ label clips of its segments: `hprior label --from-lab`), under a name of its own
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import tempfile
@@ -58,6 +59,16 @@ class Dataset:
     @property
     def episode_length(self) -> int:
         return self.train_reward.shape[1]
+
+    def digest(self) -> str:
+        """Names the data the lab learns from and is scored on (the episodes and held-out
+        pairs, not how they were made): labs to be merged (seed shards, often built on other
+        machines) must share it."""
+        h = hashlib.sha256()
+        for name in ("train_obs", "train_act", "train_reward", "test_obs", "test_act",
+                     "test_reward", "pair_index", "pair_label"):
+            h.update(np.ascontiguousarray(getattr(self, name)).tobytes())
+        return h.hexdigest()[:20]
 
     def save(self, path: Path) -> Path:
         arrays = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)

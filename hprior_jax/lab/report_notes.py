@@ -62,7 +62,7 @@ def merged_notes(results_paths, out_dir: Path) -> list[str]:
     Diagnostics are merged only when every lab has them and no seed is in two labs (the seed
     shards of one lab; labs of different world models keep theirs apart), and written to
     OUT/diagnostics.csv; the ceiling is said only when every lab states the same one (the
-    same held-out episodes)."""
+    same held-out episodes); labs of different datasets (`Dataset.digest`) are warned of."""
     folders = [Path(p).parent for p in results_paths]
     diagnostics = []
     if all((f / "diagnostics.csv").exists() for f in folders):
@@ -78,4 +78,10 @@ def merged_notes(results_paths, out_dir: Path) -> list[str]:
                 for i in infos}
     ceiling, segment_len = (json.loads(ceilings.pop()) if len(infos) == len(folders)
                             and len(ceilings) == 1 else (None, None))
-    return report_notes(diagnostics, ceiling, segment_len)
+    notes = report_notes(diagnostics, ceiling, segment_len)
+    digests = sorted({i["dataset_digest"] for i in infos if "dataset_digest" in i})
+    if len(digests) > 1:
+        notes.insert(0, f"**WARNING: these labs learned from different datasets** (digests "
+                        f"{', '.join(digests)}): their rows are not one lab's, and a paired "
+                        "comparison across them mixes datasets.")
+    return notes

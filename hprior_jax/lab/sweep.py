@@ -243,7 +243,8 @@ def _run(data, cfg, out, progress, given, reuse_world_models, contrasts, checkpo
     wall = lab.wall_before + time.perf_counter() - t0
     cells = len(cfg.seeds) * len(cfg.rules)
     info = {
-        "task": data.task, "dataset": data.info, "wall_seconds": round(wall, 1),
+        "task": data.task, "dataset": data.info, "dataset_digest": data.digest(),
+        "wall_seconds": round(wall, 1),
         "seconds": {k: round(v, 1) for k, v in lab.seconds.items()},
         "compile_seconds": {k: round(v, 1) for k, v in lab.compile_seconds.items()},
         "world_model_cache": None if cached is None else dict(
