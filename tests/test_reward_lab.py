@@ -531,6 +531,23 @@ def test_cli_builds_the_dataset_once_runs_and_reports(tmp_path, monkeypatch, cap
         assert merged[cell]["pearson"] == pytest.approx(row["pearson"], abs=1e-3), cell
 
 
+def test_a_given_dataset_file_is_the_labs_and_must_be_of_its_task(tmp_path, monkeypatch,
+                                                                  capsys):
+    """`--dataset FILE` (a lab shared by machines whose SAC runs differ) reads that file and
+    neither builds nor caches another; a file of another task is refused."""
+    from hprior_jax import cli
+
+    monkeypatch.setenv("HPRIOR_LAB_CACHE", str(tmp_path / "cache"))
+    path = confounded().save(tmp_path / "shared.npz")
+    assert cli.main(["reward-lab", "--task", "confounded", "--dataset", str(path),
+                     "--dataset-only"]) == 0
+    assert f"dataset {path}: {{'steps': 960}}" in capsys.readouterr().out
+    assert not (tmp_path / "cache").exists()
+    with pytest.raises(SystemExit):
+        cli.main(["reward-lab", "--task", "toy_point", "--dataset", str(path)])
+    assert "is of confounded, not --task toy_point" in capsys.readouterr().err
+
+
 def test_a_dataset_is_made_only_from_a_sac_run(tmp_path):
     """`--dataset-from-run` refuses another method's run before reading any checkpoint."""
     from hprior_jax import presets

@@ -36,6 +36,10 @@ def reward_lab(argv: list[str]) -> int:
             print(f"{unanswered} queries of {args.labels} are not answered: training on the "
                   f"{len(given)} that are", file=sys.stderr)
         args.budgets, args.one_shot = [len(given)], True
+    elif args.dataset:
+        path, data = Path(args.dataset), datasets.Dataset.load(Path(args.dataset))
+        if data.task != args.task:
+            parser.error(f"--dataset {args.dataset} is of {data.task}, not --task {args.task}")
     elif args.dataset_from_run:
         data = datasets.from_run(args.dataset_from_run, args.dataset_seed)
         if data.task != args.task:
@@ -96,6 +100,11 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
     parser.add_argument("--dataset-steps", type=int, default=datasets.DEFAULT_STEPS)
     parser.add_argument("--dataset-seed", type=int, default=None,
                         help="default 0 (with --dataset-from-run: the run's first seed)")
+    parser.add_argument("--dataset", default=None, metavar="FILE",
+                        help="learn from this dataset file (a lab's .npz) instead of the "
+                             "cached or built one: one lab run on several machines (seed "
+                             "shards) must share it, as another machine's SAC run may build "
+                             "other episodes")
     parser.add_argument("--dataset-from-run", default=None, metavar="RUN",
                         help="make the dataset from this finished `hprior train --algo "
                              f"{registry.REFERENCE}` run's replay buffer instead of a new run "
