@@ -25,26 +25,27 @@ def reward_lab(argv: list[str]) -> int:
 
     enable_compilation_cache()
     given = None
+
+    def of_task(data, source: str):
+        if data.task != args.task:
+            parser.error(f"{source} is of {data.task}, not --task {args.task}")
+        return data
+
     if args.labels:
         from hprior_jax.lab.human_labels import given_labels
 
         path, given, unanswered = given_labels(Path(args.labels))
-        data = datasets.Dataset.load(path)
-        if data.task != args.task:
-            parser.error(f"--labels {args.labels} are of {data.task}, not --task {args.task}")
+        data = of_task(datasets.Dataset.load(path), f"--labels {args.labels}")
         if unanswered:
             print(f"{unanswered} queries of {args.labels} are not answered: training on the "
                   f"{len(given)} that are", file=sys.stderr)
         args.budgets, args.one_shot = [len(given)], True
     elif args.dataset:
-        path, data = Path(args.dataset), datasets.Dataset.load(Path(args.dataset))
-        if data.task != args.task:
-            parser.error(f"--dataset {args.dataset} is of {data.task}, not --task {args.task}")
+        path = Path(args.dataset)
+        data = of_task(datasets.Dataset.load(path), f"--dataset {args.dataset}")
     elif args.dataset_from_run:
-        data = datasets.from_run(args.dataset_from_run, args.dataset_seed)
-        if data.task != args.task:
-            parser.error(f"--dataset-from-run {args.dataset_from_run} is a {data.task} run, "
-                         f"not --task {args.task}")
+        data = of_task(datasets.from_run(args.dataset_from_run, args.dataset_seed),
+                       f"--dataset-from-run {args.dataset_from_run}")
         info = data.info
         path = data.save(datasets.dataset_path(data.task, info["seed"], info["steps"],
                                                info["preset"]))

@@ -8,8 +8,8 @@ sets span the whole learning curve. From the held-out episodes it draws fixed se
 labelled by the oracle (pairs with equal true returns are not kept: they have no answer).
 Deterministic from (task, seed, steps, preset) on one machine: the file name says all four.
 Another machine may build other episodes (window_open's did: its float rounding differs and
-SAC amplifies it), so a lab run on several machines shares the file (`reward-lab --dataset`). Built with
-`physics=True`, it also keeps the physics state of every training step (a person can then
+SAC amplifies it), so a lab run on several machines shares the file (`reward-lab --dataset`).
+Built with `physics=True`, it also keeps the physics state of every training step (a person can then
 label clips of its segments: `hprior label --from-lab`), under a name of its own.
 """
 from __future__ import annotations
