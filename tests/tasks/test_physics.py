@@ -160,7 +160,10 @@ def test_contact_cap_keeps_every_active_contact(name):
     assert active_b.max() >= 3, "the poses must make several contacts"
     assert active_b.max() <= capped.max_contacts
     np.testing.assert_array_equal(active_a, active_b)
-    np.testing.assert_allclose(np.asarray(a.qacc), np.asarray(b.qacc), rtol=1e-3, atol=1e-2)
+    # The constraint solve rounds relative to a pose's largest acceleration (up to ~1e4 here),
+    # so a small component may differ by more than 1e-3 of itself.
+    for qacc_a, qacc_b in zip(np.asarray(a.qacc), np.asarray(b.qacc)):
+        np.testing.assert_allclose(qacc_a, qacc_b, rtol=1e-3, atol=1e-5 * np.abs(qacc_b).max())
     assert not np.any(jax.jit(jax.vmap(capped.contacts_at_cap))(a)), "the cap was not full"
     assert not np.any(jax.jit(jax.vmap(full.contacts_at_cap))(b)), "no cap, never full"
 
