@@ -100,6 +100,7 @@ def _gpu_suite_tiny(out, parts, extra=()):
     return rows
 
 
+@pytest.mark.slow  # 65-95 s: a benchmark script's check, run before a benchmark
 def test_gpu_suite_measures_env_throughput_at_tiny_sizes_on_cpu(tmp_path):
     """The GPU suite's driver and its env part on a CPU (its other parts: the slow tests),
     with and without the port's contact cap."""
@@ -108,6 +109,7 @@ def test_gpu_suite_measures_env_throughput_at_tiny_sizes_on_cpu(tmp_path):
     assert all(float(r["env_steps_per_s"]) > 0 for r in rows)
 
 
+@pytest.mark.slow  # 65-95 s: a benchmark script's check, run before a benchmark
 def test_mjx_warp_benchmark_steps_like_c_mujoco(tmp_path):
     """benchmarks.mjx_warp on the JAX side alone (warp-lang is not a dependency): the port's
     model under `mjx.step` follows C MuJoCo's `mj_step` from the same states and controls."""

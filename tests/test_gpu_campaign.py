@@ -15,6 +15,9 @@ from benchmarks import gpu_campaign as gc
 from benchmarks._gpu_campaign_world_model import residual_vs_reward_change
 from hprior_jax.lab.dataset import Dataset, heldout_pairs, split_episodes
 
+# slow: the campaign at toy sizes takes minutes; run it (-m slow) before a GPU session
+pytestmark = pytest.mark.slow
+
 SEEDS, LAB_SEEDS, CHECKPOINTS = 2, 2, (50, 100, 150)
 
 

@@ -92,6 +92,7 @@ class _Stop:
     requested = False
 
 
+@pytest.mark.slow  # 115 s: two PEBBLE runs
 def test_a_person_answering_as_the_oracle_trains_the_oracles_run(tmp_path):
     oracle = _cfg(tmp_path, "oracle", "oracle")
     train(oracle, prepare_run_dir(oracle), progress=False)
