@@ -258,8 +258,13 @@ def test_report_warns_when_the_world_model_does_not_predict_and_says_where_it_fa
     assert "does not predict" in warned and "-50.000" in warned
     assert "latent space its skill over persistence is +0.400" in warned and "0.2 against" in warned
     assert "50-step moving mean): Pearson 0.900, within-episode Pearson 0.800" in said
-    predicting = report_notes([{**seed, "wm/skill_vs_persistence": 0.3}] * 2, ceiling, 50)
+    predicting = report_notes([{**seed, "wm/skill_vs_persistence": 0.3, "alpha/position_r2": 0.4},
+                               {**seed, "wm/skill_vs_persistence": -0.1,
+                                "alpha/position_r2": 0.6}], ceiling, 50)
     assert not any("does not predict" in n for n in predicting)
+    assert ("World model: skill over persistence +0.100 (mean of 2 seeds, 1 of them above 0); "
+            "the share of its α's variance that step position explains (R²) is 0.50"
+            in predicting[0])
 
 
 def test_seed_shards_merge_into_one_report_with_their_world_model_notes(tmp_path):

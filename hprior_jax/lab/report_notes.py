@@ -23,12 +23,23 @@ def report_notes(diagnostics: list[dict], ceiling: dict | None,
                      f"{sum(k > 0 for k in skill)} seeds above 0). Its α diagnostics and the "
                      "rules that read it (prior, positional) are not evidence about what a "
                      "predicting world model's α would do." + _latent_note(diagnostics))
+    elif skill:  # it predicts: say how well, a skill near 0 reads very differently from 0.3
+        notes.append(f"World model: skill over persistence {np.mean(skill):+.3f} (mean of "
+                     f"{len(skill)} seeds, {sum(k > 0 for k in skill)} of them above 0)"
+                     + _alpha_note(diagnostics) + ".")
     if ceiling is not None and segment_len is not None:
         notes.append(f"Uniform credit's ceiling on the held-out episodes (the true reward "
                      f"against its own {segment_len}-step moving mean): Pearson "
                      f"{ceiling['pearson']:.3f}, within-episode Pearson "
                      f"{ceiling['episode_pearson']:.3f}.")
     return notes
+
+
+def _alpha_note(diagnostics: list[dict]) -> str:
+    if "alpha/position_r2" not in diagnostics[0]:
+        return ""
+    return (f"; the share of its α's variance that step position explains (R²) is "
+            f"{np.mean([d['alpha/position_r2'] for d in diagnostics]):.2f}")
 
 
 def _latent_note(diagnostics: list[dict]) -> str:
