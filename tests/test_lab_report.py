@@ -144,6 +144,18 @@ def test_write_report_and_main_regenerate_it(tmp_path):
         assert (again / name).read_bytes() == (out / name).read_bytes()
 
 
+def test_no_figures_writes_tables_only_and_no_reference_is_named_when_none_ran(tmp_path):
+    rows = [r for r in _synthetic_rows() if r["rule"] != "pebble"]
+    write_report(rows, tmp_path / "in")
+    assert "![" in (tmp_path / "in" / "report.md").read_text()
+    text = lab_report.main([str(tmp_path / "in" / "results.csv"), str(tmp_path / "out"),
+                            "--no-figures"]).read_text()
+    assert not list((tmp_path / "out").glob("*.png")) and "![" not in text and ".png" not in text
+    assert "Differences are on the seeds both ran" in text and "pebble" not in text
+    assert "Differences vs pebble are rule − pebble" in write_report(
+        _synthetic_rows(), tmp_path / "ref", figures=False).read_text()
+
+
 def test_main_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
     """Two labs of the same seeds (e.g. two world models): their own rules join one report;
     the reference rule both ran is kept once, from the first file, and a disagreement between

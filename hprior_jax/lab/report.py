@@ -229,12 +229,14 @@ def _method_line(rows) -> str:
     seed_counts = sorted({len(cell) for cell in _cells(rows).values()})
     seeds = (f"{seed_counts[0]}" if len(seed_counts) == 1
              else f"{seed_counts[0]}–{seed_counts[-1]}")
-    return (f"{seeds} seeds per (task, rule, budget). Each cell is the mean over seeds with "
-            f"its 95% Student t-interval (NaN values dropped). Differences vs {REFERENCE} are "
-            f"rule − {REFERENCE} on the seeds both ran, with a 95% t-interval and a two-sided "
-            f"paired t-test (a difference is called higher/lower only at p < {ALPHA}); MDE80 is "
-            "the smallest true difference that test detects with 80% power at this n and the "
-            "observed sd of the paired differences (noncentral t).")
+    line = (f"{seeds} seeds per (task, rule, budget). Each cell is the mean over seeds with "
+            "its 95% Student t-interval (NaN values dropped).")
+    differences = (f"Differences vs {REFERENCE} are rule − {REFERENCE}"
+                   if any(row["rule"] == REFERENCE for row in rows) else "Differences are")
+    return (f"{line} {differences} on the seeds both ran, with a 95% t-interval and a "
+            f"two-sided paired t-test (a difference is called higher/lower only at p < {ALPHA}); "
+            "MDE80 is the smallest true difference that test detects with 80% power at this n "
+            "and the observed sd of the paired differences (noncentral t).")
 
 
 def _by_task_metric(summary: list[dict]) -> dict[tuple[str, str], list[dict]]:
@@ -284,7 +286,8 @@ def _contrasts_markdown(results: list[dict], pools: list[dict]) -> list[str]:
 
 
 def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = (),
-              contrasts: list[dict] = (), pools: list[dict] = (), notes=()) -> str:
+              contrasts: list[dict] = (), pools: list[dict] = (), notes=(),
+              figures: bool = True) -> str:
     lines = [f"# {title}", ""] + [f"{note}\n" for note in notes] + [_method_line(rows), ""]
     if contrasts:
         lines += _contrasts_markdown(contrasts, pools)
@@ -294,7 +297,9 @@ def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = (),
             lines += [f"## {task}", ""]
             current_task = task
         label = METRIC_LABEL[metric]
-        lines += [f"### {label}", "", f"![{task}: {label}]({png_name(task, metric)})", ""]
+        lines += [f"### {label}", ""]
+        if figures:
+            lines += [f"![{task}: {label}]({png_name(task, metric)})", ""]
         lines += _table(entries, _mean_cell) + [""]
         comparisons = [e for e in entries if "vs_pebble_n" in e]
         if comparisons:
@@ -307,12 +312,13 @@ def _markdown(rows, summary: list[dict], title: str, pairs: list[dict] = (),
 
 
 def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=(), contrasts=(),
-                 notes=()) -> Path:
+                 notes=(), figures: bool = True) -> Path:
     """Writes summary.csv, results.csv (the raw rows), <task>_<metric>.png and report.md to
     `out_dir`; with `pairs` ((rule A, rule B), ...) pairs.csv and a section of A − B; with
     `contrasts` (`contrasts.Contrast`s or their text) contrasts.csv and the pre-registered
     section first (Holm, TOST, pooled over tasks); `notes`: paragraphs under the title (a
-    warning the reader must see). Returns the path of report.md."""
+    warning the reader must see); `figures=False`: no PNGs and no links to them (a results
+    folder that keeps only the tables). Returns the path of report.md."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarize(rows)
@@ -328,11 +334,11 @@ def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=(), contrasts=
     pools = contrast_tests.pooled(tested)
     if tested:
         _write_csv(out_dir / "contrasts.csv", tested + pools)
-    for (task, metric), entries in _by_task_metric(summary).items():
+    for (task, metric), entries in _by_task_metric(summary).items() if figures else ():
         plot_metric(entries, out_dir / png_name(task, metric),
                     f"{title}: {task}, {METRIC_LABEL[metric]}")
     report = out_dir / "report.md"
-    report.write_text(_markdown(rows, summary, title, compared, tested, pools, notes))
+    report.write_text(_markdown(rows, summary, title, compared, tested, pools, notes, figures))
     return report
 
 
@@ -360,6 +366,8 @@ def main(argv=None) -> Path:
     parser.add_argument("--only", nargs="+", default=None, metavar="RULE",
                         help="report only these rules (names after --tags), e.g. pebble rvar "
                              "pebble[one-shot] rvar[one-shot]")
+    parser.add_argument("--no-figures", action="store_true",
+                        help="tables only: no PNGs, and report.md links none")
     args = parser.parse_args(argv)
     pairs = [tuple(p.split(":")) for p in args.pairs]
     if any(len(p) != 2 for p in pairs):
@@ -379,7 +387,8 @@ def main(argv=None) -> Path:
         print(f"{differing} rows found in several files differ in a metric: the first "
               "file's are kept", file=sys.stderr)
     notes = merged_notes(args.paths[:-1], args.paths[-1])
-    report = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts, notes)
+    report = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts, notes,
+                          figures=not args.no_figures)
     print(report)
     return report
 
