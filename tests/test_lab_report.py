@@ -274,7 +274,7 @@ def test_report_warns_when_the_world_model_does_not_predict_and_says_where_it_fa
                                {**seed, "wm/skill_vs_persistence": -0.1,
                                 "alpha/position_r2": 0.6}], ceiling, 50)
     assert not any("does not predict" in n for n in predicting)
-    assert ("World model: skill over persistence +0.100 (mean of 2 seeds, 1 of them above 0); "
+    assert ("World model: skill over persistence +0.100, mean of 2 seeds, 1 of them above 0; "
             "the share of its α's variance that step position explains (R²) is 0.50"
             in predicting[0])
 

@@ -19,13 +19,11 @@ def report_notes(diagnostics: list[dict], ceiling: dict | None,
     skill = [d["wm/skill_vs_persistence"] for d in diagnostics]
     if skill and np.mean(skill) <= 0:
         notes.append(f"**WARNING: the world model does not predict** (skill over persistence "
-                     f"{np.mean(skill):+.3f}, mean of {len(skill)} seeds; "
-                     f"{sum(k > 0 for k in skill)} seeds above 0). Its α diagnostics and the "
+                     f"{_skill_text(skill)}). Its α diagnostics and the "
                      "rules that read it (prior, positional) are not evidence about what a "
                      "predicting world model's α would do." + _latent_note(diagnostics))
     elif skill:  # it predicts: say how well, a skill near 0 reads very differently from 0.3
-        notes.append(f"World model: skill over persistence {np.mean(skill):+.3f} (mean of "
-                     f"{len(skill)} seeds, {sum(k > 0 for k in skill)} of them above 0)"
+        notes.append(f"World model: skill over persistence {_skill_text(skill)}"
                      + _alpha_note(diagnostics) + ".")
     if ceiling is not None and segment_len is not None:
         notes.append(f"Uniform credit's ceiling on the held-out episodes (the true reward "
@@ -35,11 +33,20 @@ def report_notes(diagnostics: list[dict], ceiling: dict | None,
     return notes
 
 
+def _skill_text(skill: list[float]) -> str:
+    return (f"{np.mean(skill):+.3f}, mean of {len(skill)} seeds, "
+            f"{sum(k > 0 for k in skill)} of them above 0")
+
+
+def _mean(diagnostics: list[dict], key: str) -> float:
+    return float(np.mean([d[key] for d in diagnostics]))
+
+
 def _alpha_note(diagnostics: list[dict]) -> str:
     if "alpha/position_r2" not in diagnostics[0]:
         return ""
     return (f"; the share of its α's variance that step position explains (R²) is "
-            f"{np.mean([d['alpha/position_r2'] for d in diagnostics]):.2f}")
+            f"{_mean(diagnostics, 'alpha/position_r2'):.2f}")
 
 
 def _latent_note(diagnostics: list[dict]) -> str:
@@ -47,11 +54,11 @@ def _latent_note(diagnostics: list[dict]) -> str:
     and how much of the decoded error the observation model's reconstruction alone makes."""
     if "wm/latent_skill_vs_persistence" not in diagnostics[0]:  # a cache of an older lab
         return ""
-    mean = lambda k: np.mean([d[k] for d in diagnostics])
     return (f" In latent space its skill over persistence is "
-            f"{mean('wm/latent_skill_vs_persistence'):+.3f}; the observation model's "
-            f"reconstruction error alone is {mean('wm/reconstruction_error'):.4g} against "
-            f"persistence's {mean('wm/persistence_error'):.4g}.")
+            f"{_mean(diagnostics, 'wm/latent_skill_vs_persistence'):+.3f}; the observation "
+            f"model's reconstruction error alone is "
+            f"{_mean(diagnostics, 'wm/reconstruction_error'):.4g} against persistence's "
+            f"{_mean(diagnostics, 'wm/persistence_error'):.4g}.")
 
 
 def write_diagnostics(path: Path, diagnostics: list[dict]) -> None:
