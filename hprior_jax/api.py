@@ -82,7 +82,7 @@ class Env:
         """uint8[height, width, 3] of environment `index` in its current state."""
         if self.state is None:
             raise RuntimeError("call reset() before render()")
-        fields = self.task.render_state(self.state.task.data)
+        fields = self.task.render_states(self.state.task.data)
         one = {k: np.asarray(v)[index][None] for k, v in fields.items()}
         return render_frames(self.task.mj_model, one, width, height)[0]
 

@@ -71,10 +71,17 @@ class Task(abc.ABC):
         return jnp.zeros((), bool)
 
     def render_state(self, data) -> dict[str, jax.Array]:
-        """What positions a rendered frame of physics state `data`: those of RENDER_FIELDS
-        the model has (cheetah has no mocap bodies), traceable (the chunk records them for a
-        person's labels)."""
+        """What positions a rendered frame of one environment's physics state `data`: those
+        of RENDER_FIELDS the model has (cheetah has no mocap bodies), traceable (the chunk
+        records them for a person's labels). Batched data goes through `render_states`."""
         return {k: getattr(data, k) for k in RENDER_FIELDS if getattr(data, k).size}
+
+    def render_states(self, data) -> dict[str, jax.Array]:
+        """`render_state` of every environment of batched `data` (each leaf with a leading
+        env axis): {field: [N, ...]}. Whoever holds an env's batched state renders it through
+        here: `render_state` indexes bodies (`xpos[body]`) and is written for one env's data;
+        on batched data it would index the env axis instead."""
+        return jax.vmap(self.render_state)(data)
 
     def __repr__(self) -> str:
         return (

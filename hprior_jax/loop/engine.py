@@ -90,15 +90,15 @@ class Engine(ProgramCache):
         return RunState(
             sac=self.sac.init(k_sac),
             replay=replay.init(capacity, self.env.obs_size, self.env.action_size,
-                               physics=self._physics(env)),
+                               physics=self.recorded_physics(env)),
             env=env, key=k_run, method=self.method.init(k_method))
 
-    def _physics(self, env_state):
+    def recorded_physics(self, env_state):
         """The physics state behind the env's observation where it is recorded (a person
         labels clips rendered from it); None otherwise."""
         if not self.records_physics:
             return None
-        return {k: v[0] for k, v in self.task.render_state(env_state.task.data).items()}
+        return {k: v[0] for k, v in self.task.render_states(env_state.task.data).items()}
 
     # -- episode starts: made outside the chunk ------------------------------------------
     # A new episode's first state is made by a program of its own, not inside the chunk:
@@ -187,7 +187,7 @@ class Engine(ProgramCache):
             # unbatched under vmap: a dynamic-update-slice, not a scatter
             buf = replay.add(rs.replay, tr.obs[0], tr.action[0], reward, tr.next_obs[0],
                              1.0 - tr.terminated[0].astype(jnp.float32), tr.true_reward[0],
-                             index=write_at, physics=self._physics(rs.env))
+                             index=write_at, physics=self.recorded_physics(rs.env))
             metrics = dict(metrics)
             metrics.update({
                 "episode/done": jnp.logical_or(tr.terminated[0], tr.truncated[0]),

@@ -19,7 +19,7 @@ def episode_states(engine: Engine, actor_params, keys: jax.Array,
     env = engine.env  # one env, with the run's task options
 
     def snapshot(state):
-        return {k: v[0] for k, v in env.task.render_state(state.task.data).items()}
+        return {k: v[0] for k, v in env.task.render_states(state.task.data).items()}
 
     def one(params, key):
         def body(state, t):
