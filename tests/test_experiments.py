@@ -177,8 +177,12 @@ def test_grid_skips_complete_runs_and_resumes_interrupted_ones(tmp_path):
         calls.append((cfg.task, cfg.algo, resume))
         train(cfg, run_dir, resume=resume, progress=False)
 
+    info = {"command": "hprior grid ...", "git_commit": "abc"}
     runs = grid.run_grid(tmp_path, ["toy_point", "toy_scaled"], ["sac"], seeds, "smoke", TINY,
-                         train_fn=recording_train)
+                         train_fn=recording_train, run_info=info)
+    # a new run records what produced it (the resumed one keeps its own config)
+    assert json.loads((tmp_path / "toy_scaled" / "sac" / "config.json").read_text())[
+        "run_info"] == info
     assert [(r.task, r.status) for r in runs] == [("toy_point", "interrupted"),
                                                   ("toy_scaled", "new")]
     assert calls == [("toy_point", "sac", True), ("toy_scaled", "sac", False)]

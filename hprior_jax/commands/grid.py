@@ -52,6 +52,7 @@ def grid(argv: list[str]) -> int:
                              "--capture-video`")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    from hprior_jax import provenance
     from hprior_jax.experiments.grid import run_grid
     from hprior_jax.loop import host
     from hprior_jax.setup_jax import enable_compilation_cache
@@ -66,7 +67,8 @@ def grid(argv: list[str]) -> int:
     enable_compilation_cache()
     try:
         run_grid(args.out, args.tasks, args.algos, args.seeds, args.preset, overrides,
-                 progress=not args.no_progress, devices=args.devices, estimate=args.estimate)
+                 progress=not args.no_progress, devices=args.devices, estimate=args.estimate,
+                 run_info=provenance.run_info(["grid", *argv]))
     except host.Interrupted as e:
         print(f"\n{e}. Continue the grid with the same command.", file=sys.stderr, flush=True)
         return 130

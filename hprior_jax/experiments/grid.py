@@ -96,7 +96,8 @@ def plan(root: Path, tasks, algos, seeds, budget: str = "reduced",
 
 def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced",
              overrides: dict | None = None, progress: bool = True, train_fn=None,
-             devices: int | None = None, estimate: bool = False) -> list[GridRun]:
+             devices: int | None = None, estimate: bool = False,
+             run_info: dict | None = None) -> list[GridRun]:
     """Runs every (task, algo) of the grid that is not complete; returns the plan.
 
     The devices (`devices` of them, default all) are cut into groups of as many as split the
@@ -105,17 +106,18 @@ def run_grid(root: Path, tasks, algos, seeds=PAPER_SEEDS, budget: str = "reduced
     every run's remaining wall time is first calibrated (`calibrate`) and the runs are
     packed longest first onto the least loaded group; otherwise they keep the plan's order.
     `train_fn(cfg, run_dir, resume)` replaces training (tests pass a recorder). A second
-    grid on the same `root` is refused (dir_lock.DirInUse)."""
+    grid on the same `root` is refused (dir_lock.DirInUse). `run_info` (what produced the
+    grid: `hprior_jax.provenance.run_info()`) goes into each new run's config.json."""
     root = Path(root)
     runs = plan(root, tasks, algos, seeds, budget, overrides)
     root.mkdir(parents=True, exist_ok=True)
     with dir_lock.DirLock(root):  # one grid per results directory
         return _run_plan(root, runs, tasks, algos, seeds, budget, overrides, progress,
-                         train_fn, devices, estimate)
+                         train_fn, devices, estimate, run_info)
 
 
 def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress, train_fn,
-              devices, estimate) -> list[GridRun]:
+              devices, estimate, run_info) -> list[GridRun]:
     import jax
 
     spec = dict(tasks=list(tasks), algos=list(algos), seeds=list(seeds), budget=budget,
@@ -154,7 +156,7 @@ def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress
             cfg, run_dir, resume=resume, progress=progress and not side_by_side,
             engine=build.build_engine(cfg, group), interrupt=stop))
         for r in lane:
-            _train_one(r, runs, seeds, train)
+            _train_one(r, runs, seeds, train, run_info)
 
     try:
         if not side_by_side:
@@ -177,13 +179,13 @@ def _run_plan(root: Path, runs, tasks, algos, seeds, budget, overrides, progress
     return runs
 
 
-def _train_one(r: GridRun, runs, seeds, train) -> None:
+def _train_one(r: GridRun, runs, seeds, train, run_info) -> None:
     head = (f"[{runs.index(r) + 1}/{len(runs)}] {r.task} {r.algo} "
             f"(seeds {', '.join(map(str, seeds))})")
     print(f"{head}: {'resuming' if r.status == 'interrupted' else 'starting'} "
           f"in {r.run_dir}", flush=True)
     if r.status == "new":
-        prepare_run_dir(r.cfg)
+        prepare_run_dir(r.cfg, run_info)
     t0 = time.perf_counter()
     train(r.cfg, r.run_dir, r.status == "interrupted")
     print(f"{head}: finished in {time.perf_counter() - t0:.0f} s", flush=True)
