@@ -54,7 +54,7 @@ def test_label_a_lab_dataset_then_train_the_lab_on_the_answers(tmp_path, monkeyp
     monkeypatch.setenv("HPRIOR_LAB_CACHE", str(tmp_path / "cache"))
     lab = ["reward-lab", "--task", "toy_point", "--preset", "smoke", "--dataset-steps", "200"]
     assert cli.main(lab + ["--physics", "--dataset-only"]) == 0
-    (path,) = (tmp_path / "cache").glob("toy_point_*_physics.npz")
+    (path,) = (tmp_path / "cache").glob("toy_point_*_physics_code*.npz")
     data = Dataset.load(path)
     # the toy task's "qpos" is its position, which is obs[0]: the state behind each obs
     np.testing.assert_array_equal(data.train_physics["qpos"][..., 0], data.train_obs[..., 0])

@@ -672,3 +672,22 @@ def test_surf_rule_runs_beside_the_shared_program_and_reports_every_budget(data)
             assert np.abs(surf["prediction"] - pebble["prediction"]).mean() > 1e-3
     with pytest.raises(ValueError, match="lab rule object"):
         tiny(rules=("pebble", "surf"), credits=("none", "own_program"), own_rules=())
+
+
+def test_a_dataset_cache_file_is_named_by_the_code_that_builds_it(monkeypatch, tmp_path):
+    """Two builds at one commit agree on one machine; other code may give other episodes, so
+    the cache file of a build names the digest of the code it runs (the SAC run's modules,
+    not the lab's own)."""
+    from hprior_jax.lab import dataset
+
+    monkeypatch.setenv("HPRIOR_LAB_CACHE", str(tmp_path))
+    digest = dataset.build_code_digest()
+    path = dataset.dataset_path("cheetah_run", 0, 50_000, "reduced")
+    assert path.parent == tmp_path and path.name.endswith(f"_code{digest}.npz")
+    assert dataset.dataset_path("cheetah_run", 0, 50_000, "reduced", physics=True) != path
+    # the training loop is in the digest; the lab's modules are not
+    monkeypatch.setattr(dataset, "_NOT_BUILD_CODE", (*dataset._NOT_BUILD_CODE, "loop"))
+    assert dataset.build_code_digest() != digest
+    monkeypatch.setattr(dataset, "_NOT_BUILD_CODE", tuple(n for n in dataset._NOT_BUILD_CODE
+                                                          if n not in ("loop", "lab")))
+    assert dataset.build_code_digest() != digest

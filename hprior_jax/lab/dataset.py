@@ -6,7 +6,8 @@ first, then a policy that improves episode by episode, which is the kind of data
 queries are drawn from in the RL loop. Every `heldout_every`-th episode is held out, so both
 sets span the whole learning curve. From the held-out episodes it draws fixed segment pairs
 labelled by the oracle (pairs with equal true returns are not kept: they have no answer).
-Deterministic from (task, seed, steps, preset) on one machine: the file name says all four.
+Deterministic from (task, seed, steps, preset) and the code that builds it on one machine:
+the cache file's name says all five (`build_code_digest`).
 Another machine may build other episodes (window_open's did: its float rounding differs and
 SAC amplifies it), so a lab run on several machines shares the file (`reward-lab --dataset`).
 Built with `physics=True`, it also keeps the physics state of every training step (a person can then
@@ -98,9 +99,33 @@ def cache_dir() -> Path:
 PHYSICS = "train_physics."  # the saved name of a physics field of the training episodes
 
 
+# What a dataset build executes besides the lab's own modules: the SAC run (tasks, loop,
+# agent, buffers, networks, presets) and this module's split into episodes and pairs. A change
+# to any of it can give other episodes, so the cache key names its bytes.
+_NOT_BUILD_CODE = ("lab", "experiments", "commands", "labelling")
+
+
+def build_code_digest() -> str:
+    """Hex digest of the source files a dataset build runs and of jax's, jaxlib's and
+    mujoco's versions (conservative: a file the build does not run may be in it too)."""
+    package = Path(__file__).resolve().parent.parent
+    files = sorted(p for p in package.rglob("*.py")
+                   if p.relative_to(package).parts[0] not in _NOT_BUILD_CODE)
+    files += sorted((package.parent / "tasks").rglob("*.py")) + [Path(__file__).resolve()]
+    h = hashlib.sha256()
+    for path in files:
+        h.update(path.read_bytes())
+    from importlib import metadata
+
+    h.update(" ".join(metadata.version(n) for n in ("jax", "jaxlib", "mujoco")).encode())
+    return h.hexdigest()[:8]
+
+
 def dataset_path(task: str, seed: int, steps: int, preset: str, physics: bool = False) -> Path:
+    """The cache file of a build: named by what decides its episodes (task, seed, steps,
+    preset, physics recorded or not, the build's code)."""
     return cache_dir() / (f"{task}_sac-{preset}_{steps}steps_seed{seed}"
-                          + ("_physics" if physics else "") + ".npz")
+                          + ("_physics" if physics else "") + f"_code{build_code_digest()}.npz")
 
 
 def split_episodes(obs, act, reward, episode_length: int, heldout_every: int = 3):
