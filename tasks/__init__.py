@@ -7,11 +7,14 @@
 
 This package imports nothing from `hprior_jax`; `hprior_jax.envs` is its only client.
 """
+from __future__ import annotations
+
 from tasks import _xla_flags  # noqa: F401  (must run before jax is imported)
 
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
-from tasks.base import Task, TaskState
+if TYPE_CHECKING:
+    from tasks.base import Task
 
 _REGISTRY: dict[str, Callable[..., Task]] = {}
 _INFO: dict[str, "TaskInfo"] = {}
@@ -35,6 +38,8 @@ def register(name: str, factory: Callable[[], Task], info: TaskInfo | None = Non
     if name in _REGISTRY:
         raise ValueError(f"task {name!r} is already registered")
     if info is None:
+        from tasks.base import Task
+
         if not (isinstance(factory, type) and issubclass(factory, Task)):
             raise ValueError(f"register {name!r} with its TaskInfo (domain, episode length)")
         info = TaskInfo(factory.domain, factory.episode_length, factory.has_success)
@@ -98,3 +103,13 @@ for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress
     register(_name, _lazy(f"metaworld.{_name}", _cls), TaskInfo("metaworld", 500, True))
 
 __all__ = ["Task", "TaskInfo", "TaskState", "info", "make", "names", "register"]
+
+
+def __getattr__(name: str):
+    """`tasks.Task` and `tasks.TaskState` on first use: the registry itself needs no jax, so
+    listing tasks (`hprior tasks`, `--help`) does not import it."""
+    if name in ("Task", "TaskState"):
+        from tasks import base
+
+        return getattr(base, name)
+    raise AttributeError(f"module 'tasks' has no attribute {name!r}")

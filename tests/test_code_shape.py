@@ -10,7 +10,10 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 SOURCES = sorted(p for folder in ("hprior_jax", "tasks") for p in (ROOT / folder).rglob("*.py"))
 MAX_FILE_LINES, MAX_FUNCTION_LINES = 400, 80
-LAZY_ALLOWED = ("hprior_jax/cli.py", "hprior_jax/commands/")  # start-up: import what is used
+# start-up: import what is used (the command line; the packages' entry points, whose registry
+# and API load their heavy parts on first use)
+LAZY_ALLOWED = ("hprior_jax/cli.py", "hprior_jax/commands/", "tasks/__init__.py",
+                "hprior_jax/__init__.py")
 
 
 def _name(path: Path) -> str:
@@ -51,3 +54,17 @@ def test_no_dates(where):
     found = [f"{_name(p)}:{i + 1}" for p in paths
              for i, line in enumerate(p.read_text().splitlines()) if date.search(line)]
     assert not found, found
+
+
+def test_the_command_line_and_the_task_registry_load_without_jax():
+    """`hprior --help`, `hprior methods` and the task registry import no jax: a command pays
+    for jax, flax and mujoco only when it runs something that needs them."""
+    import subprocess
+    import sys
+
+    code = ("import sys, hprior_jax, hprior_jax.cli, tasks; tasks.names(); "
+            "heavy = sorted(m for m in ('jax', 'flax', 'optax', 'mujoco', 'orbax') "
+            "if m in sys.modules); print(heavy); assert not heavy")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr
+

@@ -4,11 +4,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from hprior_jax.config import DEFAULT_PRESET, PRESETS
 from hprior_jax.methods import registry
 
 
 def grid(argv: list[str]) -> int:
+    from hprior_jax.config import DEFAULT_PRESET, PRESETS
     from hprior_jax.experiments.grid import PAPER_SEEDS
 
     parser = argparse.ArgumentParser(

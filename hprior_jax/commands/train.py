@@ -7,7 +7,6 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from hprior_jax.config import DEFAULT_PRESET
 from hprior_jax.methods import registry
 
 
@@ -43,6 +42,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
     """`hprior train` after the SIGINT handler is in place; the run directory's lock, once
     held, goes into `locks` (released by the caller whatever happens)."""
     from hprior_jax import dir_lock, presets, provenance
+    from hprior_jax.config import DEFAULT_PRESET
     from hprior_jax.loop import devices, host, run_files
     from hprior_jax.runs import run_dir as run_dirs
     from hprior_jax.runs.build import build_engine, train

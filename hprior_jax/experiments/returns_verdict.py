@@ -26,6 +26,7 @@ import numpy as np
 
 from hprior_jax.experiments.report import discover, reward_correlations
 from hprior_jax.plotting import save_figure
+from hprior_jax.run_log import read_jsonl
 from hprior_jax.statistics import holm, mean_ci, paired_comparison, tost_p
 
 EVALS, CORR, PIECES = "evals.csv", "reward_corr.csv", "pieces.csv"
@@ -117,8 +118,6 @@ def collect(roots, into: Path) -> list[str]:
 
 def _chunk_seconds(run_dir: Path) -> float:
     """Seconds the run spent in its env + update chunks (`perf/chunk_s`, once per chunk)."""
-    from hprior_jax.run_log import read_jsonl
-
     seen, total = set(), 0.0
     for rec in read_jsonl(run_dir / "metrics.jsonl"):
         if "perf/chunk_s" in rec and rec["step"] not in seen:
