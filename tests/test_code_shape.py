@@ -68,3 +68,11 @@ def test_the_command_line_and_the_task_registry_load_without_jax():
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
 
+
+
+def test_the_architecture_page_names_modules_that_exist():
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    paths = set(re.findall(r"`((?:hprior_jax|tasks)/[\w/]*(?:\.py|/))`", text))
+    assert len(paths) > 20, paths
+    missing = sorted(p for p in paths if not (ROOT / p).exists())
+    assert not missing, missing
