@@ -18,8 +18,14 @@ from tasks.render_scene import PLACEMENT, render_scene
 
 W, H = 320, 240  # the size a person is shown
 METAWORLD = sorted(n for n in tasks.names() if tasks.make(n).domain == "metaworld")
-# the episode recorder compiles a whole episode's scan per task: one task in the fast suite
-RECORDER_FAST = "drawer_open"
+# Env.render covers `render_states` on every task in the fast suite; the recorder (a whole
+# episode's scan) and the engine's recorded physics compile a program of their own per task:
+# one task each in the fast suite, the others under -m slow
+FAST = "drawer_open"
+
+
+def _one_fast(names):
+    return [pytest.param(n, marks=() if n == FAST else pytest.mark.slow) for n in names]
 
 
 def _object_mask(task, states) -> np.ndarray:
@@ -71,7 +77,7 @@ def test_env_render_shows_each_envs_object(name):
             truth, f"render_states row {i}")
 
 
-@pytest.mark.parametrize("name", METAWORLD)
+@pytest.mark.parametrize("name", _one_fast(METAWORLD))
 def test_recorded_physics_for_a_persons_clips_shows_the_object(name):
     """The engine records `recorded_physics` of each seed's env into the replay buffer; the
     labelling page's clips are rendered from those rows."""
@@ -84,8 +90,7 @@ def test_recorded_physics_for_a_persons_clips_shows_the_object(name):
     _assert_object_where_physics_put_it(engine.task, shown, truth, "recorded physics")
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=() if n == RECORDER_FAST
-                                                else pytest.mark.slow) for n in METAWORLD])
+@pytest.mark.parametrize("name", _one_fast(METAWORLD))
 def test_episode_recorder_shows_the_object(name):
     """Evaluation videos and `--capture-video` render `episode_states`: the first and the
     last frame of an episode show the object where the episode's own reset placed it."""
