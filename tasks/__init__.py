@@ -70,15 +70,35 @@ def make(name: str, **options) -> Task:
     return _CACHE[key]
 
 
-def _lazy(module: str, cls: str) -> Callable[..., Task]:
-    """A factory that imports the port on first use (building a scene takes seconds)."""
+class _Port:
+    """The factory of a port in `tasks/`, which imports the port's module on first use:
+    `import tasks` stays free of jax, and a scene is built only when asked for (a MetaWorld
+    scene takes seconds)."""
 
-    def factory(**options) -> Task:
+    def __init__(self, module: str, cls: str):
+        self.module, self.cls = module, cls
+
+    def task_class(self) -> type[Task]:
         import importlib
 
-        return getattr(importlib.import_module(f"tasks.{module}"), cls)(**options)
+        return getattr(importlib.import_module(f"tasks.{self.module}"), self.cls)
 
-    return factory
+    def __call__(self, **options) -> Task:
+        return self.task_class()(**options)
+
+
+def task_class(name: str) -> type[Task]:
+    """The class of the task registered under `name`, imported but not built. Its class
+    attributes are the task's own facts: its goal line, and for a port the reference it is
+    checked against (`suite` of a DM Control port; `metaworld_env`, `scripted_policy` and
+    `object_joint` of a MetaWorld port)."""
+    info(name)  # an unknown name stops here, with the registered ones
+    factory = _REGISTRY[name]
+    if isinstance(factory, _Port):
+        return factory.task_class()
+    if isinstance(factory, type):
+        return factory
+    raise ValueError(f"task {name!r} was registered with a factory function, not a class")
 
 
 # XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/results/
@@ -93,16 +113,16 @@ _DMC_LEVELS = {"cheetah_run": 1, "quadruped_walk": 1}
 for _name, _module, _cls in (("cheetah_run", "cheetah", "CheetahRun"),
                              ("walker_walk", "walker", "WalkerWalk"),
                              ("quadruped_walk", "quadruped", "QuadrupedWalk")):
-    register(_name, _lazy(f"dm_control.{_module}", _cls),
+    register(_name, _Port(f"dm_control.{_module}", _cls),
              TaskInfo("dm_control", 1000, False, _DMC_LEVELS.get(_name)))
 
 # MetaWorld v3 ports (tasks/metaworld/): max_path_length 500
 for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress"),
                     ("door_open", "DoorOpen"), ("window_open", "WindowOpen"),
                     ("door_unlock", "DoorUnlock"), ("sweep_into", "SweepInto")):
-    register(_name, _lazy(f"metaworld.{_name}", _cls), TaskInfo("metaworld", 500, True))
+    register(_name, _Port(f"metaworld.{_name}", _cls), TaskInfo("metaworld", 500, True))
 
-__all__ = ["Task", "TaskInfo", "TaskState", "info", "make", "names", "register"]
+__all__ = ["Task", "TaskInfo", "TaskState", "info", "make", "names", "register", "task_class"]
 
 
 def __getattr__(name: str):

@@ -17,7 +17,7 @@ from hprior_jax.runs.build import build_engine
 from tasks.render_scene import PLACEMENT, render_scene
 
 W, H = 320, 240  # the size a person is shown
-METAWORLD = sorted(n for n in tasks.names() if tasks.make(n).domain == "metaworld")
+METAWORLD = [n for n in tasks.names() if tasks.info(n).domain == "metaworld"]
 # the episode recorder compiles a whole episode's scan per task: one task in the fast suite
 RECORDER_FAST = "drawer_open"
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import tasks
-from tasks.metaworld.closed_loop import (TASKS, make_task, run_metaworld, run_port,
-                                         run_port_c, targets)
+from tasks.metaworld.closed_loop import make_task, run_metaworld, run_port, run_port_c, targets
+from tasks.metaworld.reference import ports
 from tasks.metaworld.scene import load_full_model
 
 STEPS = 100  # button_press: the press happens at steps ~50-70
@@ -159,7 +159,7 @@ MISSES = {
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [
     pytest.param(n, marks=pytest.mark.xfail(reason=MISSES[n], strict=True)) if n in MISSES
-    else n for n in TASKS])
+    else n for n in ports()])
 def test_closed_loop_targets(name):
     """Issue 18's targets per task, 20 episodes a side, 500 steps."""
     mw = run_metaworld(name, episodes=20, seed=0)
