@@ -23,7 +23,7 @@ MJX's contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; 
 group active after any step, against `contact_slots`, and per group `contacts_by_condim`
 ("condim:most active/slots").
 
-Targets (issue 18), port vs metaworld: return ratio in [0.9, 1.1]; last-step success within
+Targets, port vs metaworld: return ratio in [0.9, 1.1]; last-step success within
 15 points; excursion beyond the range at most metaworld's + 1 cm (0.05 rad for hinges);
 hand-mocap distance ratio in [0.7, 1.3]. `targets_met` lists which hold.
 """

@@ -83,7 +83,8 @@ class SawyerTask(Task):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
         That is metaworld v3's own default (`_partially_observable = True`) and what BPref
-        and every PbRL baseline the paper compares with used (spec §7.2, BPref issue #8);
+        and every PbRL baseline the paper compares with used: BPref's `make_metaworld_env`
+        never changes it, so its goal slots are zeros (GitHub rll-research/BPref issue 8);
         pass False for metaworld's "goal observable" variant.
 
         solver_iterations / ls_iterations: metaworld's scene asks for 50 Newton iterations at
