@@ -101,12 +101,10 @@ def task_class(name: str) -> type[Task]:
     raise ValueError(f"task {name!r} was registered with a factory function, not a class")
 
 
-# XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/results/
-# compile_level.csv, reduced PEBBLE, 12000 steps, cold): cheetah_run's first env step 8-30 s
-# sooner in 3 of 3 pairs, chunks at the same speed; quadruped_walk 15 and 30 s sooner in 2 of
-# 2 pairs (the whole run -93 then +10 s: its chunks' speed is noise). Not walker_walk (4 and
-# 16 s sooner, but evaluation 27-29% slower in 2 of 2 pairs, about +20 s over a reduced run)
-# nor MetaWorld (steps 2-29% slower at level 1).
+# XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/README.md,
+# "compile_level"; benchmarks/results/compile_level.csv): cheetah_run's and quadruped_walk's
+# first env step comes sooner, their chunks at the same speed. Not walker_walk (its evaluation
+# runs slower at level 1) nor MetaWorld (its steps run slower).
 _DMC_LEVELS = {"cheetah_run": 1, "quadruped_walk": 1}
 
 # DM Control ports (tasks/dm_control/): 1000 control steps each (a test checks the built tasks)
