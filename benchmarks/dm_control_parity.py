@@ -31,7 +31,7 @@ import jax
 import numpy as np
 
 from tasks.dm_control.reference import (  # noqa: F401  (flatten_obs, reference_env: env_profile)
-    SUITE_NAMES, flatten_obs, make_rollout, obs_reward_check, policy_returns,
+    flatten_obs, make_rollout, obs_reward_check, policy_returns, ports,
     quadruped_height_check, reference_env, reset_check, same_state_check, trajectory_check)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dm_control_parity.csv"
@@ -43,7 +43,7 @@ def _fmt(x):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--tasks", nargs="+", default=list(SUITE_NAMES))
+    parser.add_argument("--tasks", nargs="+", default=ports())
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--x64", action="store_true", help="float64 MJX trajectory check only")
     parser.add_argument("--out", type=Path, default=RESULTS)

@@ -44,6 +44,7 @@ from mujoco.mjx._src import collision_driver, constraint, forward, sensor, smoot
 
 from benchmarks._timing import write_rows
 from tasks import physics
+from tasks.dm_control.reference import ports
 from tasks.physics import mjx
 
 RESULTS = Path(__file__).resolve().parent / "results" / "env_profile.csv"
@@ -228,10 +229,8 @@ def contact_counts(name: str, episodes: int, seed: int = 0,
 
 
 def main(argv=None):
-    from benchmarks.dm_control_parity import SUITE_NAMES
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--tasks", nargs="+", default=[n for n in tasks.names() if n in SUITE_NAMES])
+    parser.add_argument("--tasks", nargs="+", default=ports())
     parser.add_argument("--batch", type=int, default=128)
     parser.add_argument("--warm-steps", type=int, default=200,
                         help="random-action control steps before the profiled states")

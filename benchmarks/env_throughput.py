@@ -30,6 +30,7 @@ from typing import Callable
 
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 from tasks import batching, physics
+from tasks.dm_control.reference import ports, reference_env
 
 import jax
 import numpy as np
@@ -40,10 +41,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "env_throughput.csv"
 # -- reference simulators, one function per domain ---------------------------------------
 def dm_control_reference(task_name: str, n_steps: int, seed: int = 0) -> float:
     """Control steps/s of dm_control's own env (`env.step`, random actions, resets excluded)."""
-    from dm_control import suite
-
-    domain, task = task_name.split("_", 1)
-    env = suite.load(domain, task, task_kwargs={"random": seed})
+    env = reference_env(task_name, seed)
     spec = env.action_spec()
     rng = np.random.RandomState(seed)
     actions = rng.uniform(spec.minimum, spec.maximum, (n_steps, spec.shape[0]))
@@ -103,10 +101,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     # default: the DM Control ports (building every registered task would also build the
     # MetaWorld scenes); any registered task whose domain has a REFERENCES entry works
-    from benchmarks.dm_control_parity import SUITE_NAMES
-
-    dmc = [n for n in tasks.names() if n in SUITE_NAMES]
-    parser.add_argument("--tasks", nargs="+", default=dmc)
+    parser.add_argument("--tasks", nargs="+", default=ports())
     parser.add_argument("--batch", nargs="+", type=int, default=[1, 16, 128])
     parser.add_argument("--steps", type=int, default=50, help="control steps per timed rollout")
     parser.add_argument("--repeats", type=int, default=2)

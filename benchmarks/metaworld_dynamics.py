@@ -23,7 +23,7 @@ MJX's contact cap (K slots per condim group, `tasks.physics.with_max_contacts`; 
 group active after any step, against `contact_slots`, and per group `contacts_by_condim`
 ("condim:most active/slots").
 
-Targets (issue 18), port vs metaworld: return ratio in [0.9, 1.1]; last-step success within
+Targets, port vs metaworld: return ratio in [0.9, 1.1]; last-step success within
 15 points; excursion beyond the range at most metaworld's + 1 cm (0.05 rad for hinges);
 hand-mocap distance ratio in [0.7, 1.3]. `targets_met` lists which hold.
 """
@@ -40,9 +40,9 @@ from pathlib import Path
 import mujoco
 
 from benchmarks._timing import read_rows, write_rows
-from tasks.metaworld.closed_loop import (TASKS, make_task, object_joint,  # noqa: F401
+from tasks.metaworld.closed_loop import (make_task, object_joint,  # noqa: F401
                                          run_metaworld, run_port, run_port_c, targets)
-from tasks.metaworld.reference import metaworld_version
+from tasks.metaworld.reference import metaworld_version, ports
 
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_dynamics.csv")
 
@@ -59,7 +59,7 @@ def contact_cap_option(value: str | None) -> tuple[dict, str | None]:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--tasks", nargs="*", default=list(TASKS))
+    p.add_argument("--tasks", nargs="*", default=ports())
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sides", nargs="*", default=["metaworld", "port"],

@@ -29,9 +29,9 @@ import mujoco
 import numpy as np
 
 from benchmarks._timing import read_rows, write_rows
-from benchmarks.metaworld_dynamics import TASKS, make_task, object_joint
+from benchmarks.metaworld_dynamics import make_task, object_joint
 from benchmarks.metaworld_parity import policy_env
-from tasks.metaworld.reference import metaworld_version, scripted_policy
+from tasks.metaworld.reference import metaworld_version, ports, scripted_policy
 
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_mocap_replay.csv")
 REACH_STEPS = 60  # the scripted policies reach for the object first: no contact before this
@@ -108,7 +108,7 @@ def compare(episodes: list[dict], replays: list[dict]) -> dict:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--tasks", nargs="*", default=list(TASKS))
+    p.add_argument("--tasks", nargs="*", default=ports())
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--steps", type=int, default=500)
     p.add_argument("--seed", type=int, default=0)

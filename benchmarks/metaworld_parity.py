@@ -25,10 +25,9 @@ import time
 import numpy as np
 
 from tasks.metaworld.parity import drift, reward_parity, scripted_success
-from tasks.metaworld.reference import (explore_action, metaworld_version, policy_env,
+from tasks.metaworld.reference import (explore_action, metaworld_version, policy_env, ports,
                                       scripted_policy)
 
-TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_parity.csv")
 
 
@@ -64,7 +63,7 @@ def main():
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args()
-    names = args.tasks or [n for n in TASKS if n in tasks.names()]
+    names = args.tasks or ports()
     rows = []
     for name in names:
         task = tasks.make(name)

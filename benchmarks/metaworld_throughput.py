@@ -30,9 +30,8 @@ import numpy as np
 
 from benchmarks._timing import read_rows, write_rows
 from tasks import batching, physics
-from tasks.metaworld.reference import make_env, metaworld_version
+from tasks.metaworld.reference import make_env, metaworld_version, ports
 
-TASKS = ("drawer_open", "button_press", "door_open", "window_open", "door_unlock", "sweep_into")
 RESULTS = os.path.join(os.path.dirname(__file__), "results", "metaworld_throughput.csv")
 
 
@@ -95,7 +94,7 @@ def main():
     options, cap = contact_cap_option(args.max_contacts)
     label = (args.label or "-".join(x for x in (args.variant, args.wrist, cap) if x)
              or "registered")
-    names = args.tasks or [n for n in TASKS if n in tasks.names()]
+    names = args.tasks or ports()
     rows = []
     for name in names:
         task = make_task(name, args.variant, args.wrist, **options)

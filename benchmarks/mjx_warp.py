@@ -29,6 +29,7 @@ from pathlib import Path
 import tasks  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 from benchmarks._timing import write_rows
 from tasks import physics
+from tasks.dm_control.reference import ports
 
 import jax
 import mujoco
@@ -168,7 +169,7 @@ def parity(task, engines: dict[str, Engine], n_states: int) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--tasks", nargs="+", default=["cheetah_run", "walker_walk", "quadruped_walk"])
+    p.add_argument("--tasks", nargs="+", default=ports())
     p.add_argument("--batch", nargs="+", type=int, default=[1, 16, 128])
     p.add_argument("--steps", type=int, default=20, help="control steps per timed rollout")
     p.add_argument("--repeats", type=int, default=2)

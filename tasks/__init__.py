@@ -70,39 +70,57 @@ def make(name: str, **options) -> Task:
     return _CACHE[key]
 
 
-def _lazy(module: str, cls: str) -> Callable[..., Task]:
-    """A factory that imports the port on first use (building a scene takes seconds)."""
+class _Port:
+    """The factory of a port in `tasks/`, which imports the port's module on first use:
+    `import tasks` stays free of jax, and a scene is built only when asked for (a MetaWorld
+    scene takes seconds)."""
 
-    def factory(**options) -> Task:
+    def __init__(self, module: str, cls: str):
+        self.module, self.cls = module, cls
+
+    def task_class(self) -> type[Task]:
         import importlib
 
-        return getattr(importlib.import_module(f"tasks.{module}"), cls)(**options)
+        return getattr(importlib.import_module(f"tasks.{self.module}"), self.cls)
 
-    return factory
+    def __call__(self, **options) -> Task:
+        return self.task_class()(**options)
 
 
-# XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/results/
-# compile_level.csv, reduced PEBBLE, 12000 steps, cold): cheetah_run's first env step 8-30 s
-# sooner in 3 of 3 pairs, chunks at the same speed; quadruped_walk 15 and 30 s sooner in 2 of
-# 2 pairs (the whole run -93 then +10 s: its chunks' speed is noise). Not walker_walk (4 and
-# 16 s sooner, but evaluation 27-29% slower in 2 of 2 pairs, about +20 s over a reduced run)
-# nor MetaWorld (steps 2-29% slower at level 1).
+def task_class(name: str) -> type[Task]:
+    """The class of the task registered under `name`, imported but not built. Its class
+    attributes are the task's own facts: its goal line, and for a port the reference it is
+    checked against (`suite` of a DM Control port; `metaworld_env`, `scripted_policy` and
+    `object_joint` of a MetaWorld port)."""
+    info(name)  # an unknown name stops here, with the registered ones
+    factory = _REGISTRY[name]
+    if isinstance(factory, _Port):
+        return factory.task_class()
+    if isinstance(factory, type):
+        return factory
+    raise ValueError(f"task {name!r} was registered with a factory function, not a class")
+
+
+# XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/README.md,
+# "compile_level"; benchmarks/results/compile_level.csv): cheetah_run's and quadruped_walk's
+# first env step comes sooner, their chunks at the same speed. Not walker_walk (its evaluation
+# runs slower at level 1) nor MetaWorld (its steps run slower).
 _DMC_LEVELS = {"cheetah_run": 1, "quadruped_walk": 1}
 
 # DM Control ports (tasks/dm_control/): 1000 control steps each (a test checks the built tasks)
 for _name, _module, _cls in (("cheetah_run", "cheetah", "CheetahRun"),
                              ("walker_walk", "walker", "WalkerWalk"),
                              ("quadruped_walk", "quadruped", "QuadrupedWalk")):
-    register(_name, _lazy(f"dm_control.{_module}", _cls),
+    register(_name, _Port(f"dm_control.{_module}", _cls),
              TaskInfo("dm_control", 1000, False, _DMC_LEVELS.get(_name)))
 
 # MetaWorld v3 ports (tasks/metaworld/): max_path_length 500
 for _name, _cls in (("drawer_open", "DrawerOpen"), ("button_press", "ButtonPress"),
                     ("door_open", "DoorOpen"), ("window_open", "WindowOpen"),
                     ("door_unlock", "DoorUnlock"), ("sweep_into", "SweepInto")):
-    register(_name, _lazy(f"metaworld.{_name}", _cls), TaskInfo("metaworld", 500, True))
+    register(_name, _Port(f"metaworld.{_name}", _cls), TaskInfo("metaworld", 500, True))
 
-__all__ = ["Task", "TaskInfo", "TaskState", "info", "make", "names", "register"]
+__all__ = ["Task", "TaskInfo", "TaskState", "info", "make", "names", "register", "task_class"]
 
 
 def __getattr__(name: str):

@@ -53,6 +53,7 @@ class Task(abc.ABC):
     control_timestep: float = 0.0  # seconds of simulated time per control step
     has_success: bool = False  # MetaWorld tasks define success; DM Control tasks do not
     domain: str = ""  # "dm_control" or "metaworld": selects per-domain presets
+    goal_text: str = ""  # what the true reward pays for, in one line (the labelling page's)
     # on CPU, many envs of this task step as vmapped groups of this size (tasks/batching.py);
     # None: one vmap, where groups were measured to gain nothing
     cpu_group: int | None = None

@@ -113,3 +113,10 @@ def test_a_token_guards_every_request(folder):
     assert client.get("/api/next", headers={"X-Hprior-Token": "wrong"}).status_code == 403
     assert client.get("/?token=s3cret").status_code == 200
     assert client.get("/api/next", headers={"X-Hprior-Token": "s3cret"}).status_code == 200
+
+
+def test_the_goal_line_is_the_tasks_own():
+    from hprior_jax.labelling.goals import goal
+
+    assert goal("drawer_open") == "Pull the drawer open."
+    assert goal("toy_point") == "" and goal("no_such_task") == ""

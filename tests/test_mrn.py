@@ -94,6 +94,20 @@ def test_real_update_is_a_sac_update_that_reuses_the_inner_target():
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
 
 
+def test_the_meta_steps_time_limit_ends_are_the_buffers_episode_ends():
+    """`time_limit_terminal` masks the rows the buffer's layout calls episode ends: row i with
+    (i + 1) % L == 0, and never a row that `rows_with_next` may draw (a step with a next)."""
+    from hprior_jax.buffers.episodes import episode_ends, rows_with_next
+
+    L, capacity = 20, 200
+    rows = jnp.arange(capacity)
+    ends = np.asarray(episode_ends(rows, L))
+    np.testing.assert_array_equal(ends, (np.arange(capacity) + 1) % L == 0)
+    drawn, _ = rows_with_next(jax.random.key(0), jnp.asarray(150), L, (4096,), capacity)
+    assert not ends[np.asarray(drawn)].any()
+    assert set(np.flatnonzero(ends)) == set(range(L - 1, capacity, L))
+
+
 def test_recent_pairs_is_a_ring_slice_ending_at_the_write_pointer():
     store = preferences.init(2, 1, 1, capacity=5)
     rows = lambda n: jnp.arange(n, dtype=jnp.int32)

@@ -17,7 +17,7 @@ from hprior_jax.runs.build import build_engine
 from tasks.render_scene import PLACEMENT, render_scene
 
 W, H = 320, 240  # the size a person is shown
-METAWORLD = sorted(n for n in tasks.names() if tasks.make(n).domain == "metaworld")
+METAWORLD = [n for n in tasks.names() if tasks.info(n).domain == "metaworld"]
 # Env.render covers `render_states` on every task in the fast suite; the recorder (a whole
 # episode's scan) and the engine's recorded physics compile a program of their own per task:
 # one task each in the fast suite, the others under -m slow

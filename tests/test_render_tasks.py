@@ -12,11 +12,11 @@ import pytest
 import tasks
 from hprior_jax.render import default_camera, render_frames
 from tasks.render_scene import PLACEMENT, joint_layout, render_scene, subtree
-from tests.toy_task import ALL_TOY_TASKS
+from tests.toy_task import TOYS
 
 W, H = 160, 120
 # the MuJoCo ports (not the model-less toy tasks the tests register)
-PORTS = [n for n in tasks.names() if n not in {c.name for c in ALL_TOY_TASKS}]
+PORTS = [n for n in tasks.names() if n not in {c.name for c in TOYS}]
 
 
 def _state(task) -> dict:

@@ -27,6 +27,21 @@ CFG = _cfg()
 
 
 # ---------------------------------------------------------------- config
+def test_the_world_models_sizes_are_written_once():
+    """PRIOR's options default to the world model's defaults, and its transformer's sizes to
+    TransformerXLConfig's: the paper's sizes (TWM's) have one source."""
+    from hprior_jax.methods.prior import PriorConfig
+
+    made = PriorConfig().world_model(17, 6, segment_len=50)
+    assert made == wm.WorldModelConfig(17, 6, segment_len=50, memory_len=50)
+    assert (made.embed_dim, made.num_heads, made.head_dim, made.num_layers, made.ff_dim,
+            made.latent_dim, made.obs_hidden, made.head_hidden) == (
+        256, 4, 64, 10, 1024, 32, (512, 512), (512, 512, 512, 512))
+    net, default = made.transformer(), txl.TransformerXLConfig()
+    for size in ("embed_dim", "num_heads", "head_dim", "num_layers", "ff_dim", "dropout"):
+        assert getattr(net, size) == getattr(default, size), size
+
+
 def test_config_rejects_memory_shorter_than_segment():
     with pytest.raises(ValueError, match="memory_len"):
         _cfg(segment_len=10, memory_len=8)

@@ -67,10 +67,11 @@ class ToyScaled(ToyPoint):
         return state.replace(true_reward=3.0 * state.true_reward)
 
 
-ALL_TOY_TASKS = (ToyPoint, ToyNaN, ToyScaled)
+# the model-less tasks the tests register beside the ports
+TOYS = (ToyPoint, ToyNaN, ToyScaled)
 
 
 def ensure_registered():
-    for cls in ALL_TOY_TASKS:
+    for cls in TOYS:
         if cls.name not in tasks.names():
             tasks.register(cls.name, cls)

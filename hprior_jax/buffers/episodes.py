@@ -29,6 +29,11 @@ def segment_rows(key: jax.Array, size: jax.Array, *, episode_len: int, batch_siz
     return start[:, None] + jnp.arange(segment_len)[None, :]
 
 
+def episode_ends(rows: jax.Array, episode_len: int) -> jax.Array:
+    """bool[...]: whether each replay row is the last step of its episode (its time limit)."""
+    return (rows + 1) % episode_len == 0
+
+
 def rows_with_next(key: jax.Array, size: jax.Array, episode_len: int, shape: tuple,
                    capacity: int) -> tuple[jax.Array, jax.Array]:
     """Rows i[shape] drawn uniformly (with replacement) among the stored steps that are not

@@ -166,3 +166,9 @@ def get_task(task_name: str) -> Task:
 def task_info(task_name: str) -> tasks.TaskInfo:
     """Domain, episode length, success flag: no model is built."""
     return tasks.info(task_name)
+
+
+def task_goal(task_name: str) -> str:
+    """What the task's true reward pays for, in one line ("" where the task says nothing):
+    no model is built."""
+    return tasks.task_class(task_name).goal_text

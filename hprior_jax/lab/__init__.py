@@ -1,7 +1,19 @@
 """The reward-learning lab (`hprior reward-lab`): reward learning decoupled from RL.
 
-dataset  a task's fixed episodes (a SAC run's replay buffer) and held-out labelled pairs
-learn    every (seed, rule) cell trained round by round in one compiled program
-metrics  reward quality on held-out data
-sweep    the RL preset's settings -> a lab run -> results, timing and the report
+sweep               the RL preset's settings -> a lab run -> results, timing and the report
+config              the lab's configuration, its rules' credits α and its programs' data types
+dataset             a task's fixed episodes (a SAC run's replay buffer), held-out labelled pairs
+learn               every (seed, rule) cell trained round by round in one compiled program
+rounds              one round of one cell: query, teacher, credit, reward update
+seed_world_model    a seed's world model, trained once on the training episodes
+world_model_cache   trained world models kept on disk for the next lab of the same data
+resume              a lab's state between rounds, to go on after a stop
+npz_files           the lab's .npz files, written whole and read leaf by leaf
+human_labels        queries from a lab dataset for a person, and the answers back as labels
+metrics             reward quality on held-out data
+contrasts           the pre-registered contrasts (Holm's correction, equivalence tests)
+report              the report against the reference rule at each label budget
+report_figures      the report's figures: each metric against the label budget
+report_notes        the paragraphs a report shows first (does the world model predict?)
+probe               a critical-event probe of the world model's credit α (synthetic data)
 """

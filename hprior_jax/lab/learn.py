@@ -312,10 +312,10 @@ def _broadcast_cells(init, keys: jax.Array, rules: int):
 def _over_cells(fn, seed_axes, rule_axes):
     """`fn` of one cell over [seed, rule] cells (`*_axes`: 0 where an argument has that axis,
     None where it is shared). Rules are vmapped; seeds are vmapped on accelerators and
-    mapped one after the other (`lax.map`) on CPU, where the vmapped round of 40 cells held
-    19.2 GiB of intermediates (sweep_into, 10 seeds x 4 rules, minibatch 128: each cell's
-    forward and backward pass over 128 x 2 segments of 50 steps) against 2.1 GiB mapped,
-    and a wider batch buys a CPU little (the whole lab: peak RSS 21.0 -> 3.6 GiB)."""
+    mapped one after the other (`lax.map`) on CPU, where vmapping them too holds every cell's
+    intermediates of a round at once (each cell's forward and backward pass over its
+    minibatch of segment pairs), several times the memory, and a wider batch buys a CPU
+    little (peak memory of both: docs/reward_lab.md, "Cost")."""
     cells = jax.vmap(fn, rule_axes)
     if jax.default_backend() != "cpu":
         return jax.vmap(cells, seed_axes)

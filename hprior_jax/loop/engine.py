@@ -139,7 +139,7 @@ class Engine(ProgramCache):
 
     def _starts_program(self):
         """The episode-starts program: one vmap over every seed and slot (`VecEnv.reset_many`;
-        nested over seeds and slots, it took 2.6x as long to lower)."""
+        vmaps nested over seeds and slots took longer to lower)."""
         return self.over_seed_axis(self.env.reset_many)
 
     def chunk(self, rs: RunState, step0: jax.Array, starts: EnvState, *, length: int,
@@ -304,11 +304,10 @@ class Engine(ProgramCache):
         """With `first_phase_apart`, chunks of the first phase (random actions: no network
         update) run a program of that phase alone, smaller to compile, so the run's first env
         steps need not wait for the program of every phase, which compiles in the background
-        meanwhile (cheetah_run, reduced PEBBLE, cold: first env step 64 s against 82 s, but
-        the run ended 26 s later; since the episode starts are made outside the chunk, 29.3 s
-        against 30.1 s, the run 11.6 s later, one run each; a flag, `--compile-ahead
-        first-phase-apart`). Both compute the same bits (tested). Without a background
-        compile the split would only add one."""
+        meanwhile. Measured, the run starts sooner but ends later, so it stays a flag
+        (`--compile-ahead first-phase-apart`; benchmarks/README.md, "compile_ahead"). Both
+        compute the same bits (tested). Without a background compile the split would only
+        add one."""
         first = (self.first_phase_apart and self._phase_index(step0) == 0
                  and len(self.phases) > 1)
         return f"chunk/{length}/{self.phases[0].name}" if first else f"chunk/{length}"
@@ -341,9 +340,9 @@ class Engine(ProgramCache):
 
 def over_seeds(fn, *args):
     """`fn` for every seed (leading axis of `args`: a device's seeds): one seed after the
-    other on CPU, where MJX gains nothing from a wider batch and loses cache locality
-    (cheetah, 5 seeds x 10 episodes: 5.4x one seed's evaluation with `lax.map`, 6.5x
-    vmapped, 5.9x as one flat batch of 50 envs); vmapped on accelerators."""
+    other on CPU, where MJX gains nothing from a wider batch and loses cache locality (an
+    evaluation of several cheetah seeds ran slower vmapped, or as one flat batch of their
+    envs, than mapped); vmapped on accelerators."""
     if jax.default_backend() == "cpu":
         return jax.lax.map(lambda a: fn(*a), args)
     return jax.vmap(fn)(*args)

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hprior_jax.buffers import replay
+from hprior_jax.buffers.episodes import episode_ends
 from hprior_jax.envs import task_info
 from hprior_jax.methods.base import Phase
 from hprior_jax.methods.pebble import Pebble
@@ -91,8 +92,8 @@ class Mrn(Pebble):
         key, k_sample, k_update = jax.random.split(rs.key, 3)
         idx = replay.sample_indices(buf, k_sample, self.kit.sac.cfg.batch_size)
         batch = replay.gather(buf, idx)
-        if self.mcfg.time_limit_terminal:  # whole episodes from row 0: ends at (i+1) % L == 0
-            last = (idx + 1) % self.kit.env.episode_length == 0
+        if self.mcfg.time_limit_terminal:
+            last = episode_ends(idx, self.kit.env.episode_length)
             batch = batch._replace(not_done=batch.not_done * (~last))
         pairs, mask = recent_pairs(ms, self.pcfg.queries_per_round)
         sac, params, opt, metrics = bilevel_update(

@@ -88,22 +88,24 @@ class PriorConfig:
     """Option (not in the paper, nor TWM, which predict the next latent itself): "delta"
     predicts its change, ẑ_{t+1} = z_t + head, decoded as s_t + dec(ẑ_{t+1}) - dec(z_t). On
     MetaWorld, where states barely move per step, the "state" model loses to persistence."""
-    # world model sizes (TWM defaults; appendix Table 5 sets sequence = memory = segment length)
-    wm_batch: int = 100
-    wm_latent: int = 32
-    wm_obs_hidden: int = 512
-    wm_obs_depth: int = 2
-    wm_embed: int = 256
-    wm_layers: int = 10
-    wm_heads: int = 4
-    wm_head_dim: int = 64
-    wm_ff: int = 1024
-    wm_head_hidden: int = 512
-    wm_head_depth: int = 4
-    wm_dropout: float = 0.1
-    wm_dropout_rng: DropoutRng = "hash"
+    # world model sizes: WorldModelConfig's defaults, which hold them (TWM's; appendix Table 5
+    # sets sequence = memory = segment length)
+    wm_batch: int = WorldModelConfig.batch_size
+    wm_latent: int = WorldModelConfig.latent_dim
+    wm_obs_hidden: int = WorldModelConfig.obs_hidden[0]
+    wm_obs_depth: int = len(WorldModelConfig.obs_hidden)
+    wm_embed: int = WorldModelConfig.embed_dim
+    wm_layers: int = WorldModelConfig.num_layers
+    wm_heads: int = WorldModelConfig.num_heads
+    wm_head_dim: int = WorldModelConfig.head_dim
+    wm_ff: int = WorldModelConfig.ff_dim
+    wm_head_hidden: int = WorldModelConfig.head_hidden[0]
+    wm_head_depth: int = len(WorldModelConfig.head_hidden)
+    wm_dropout: float = WorldModelConfig.dropout
+    wm_dropout_rng: DropoutRng = WorldModelConfig.dropout_rng
     """Source of the world model's dropout bits: hash is the fastest on CPU (see WorldModelConfig)."""
-    wm_lr: float = 1e-4
+    # one learning rate for both of the world model's optimisers (whose defaults are equal)
+    wm_lr: float = WorldModelConfig.dyn_lr
 
     def __post_init__(self):
         if self.lam < 0:

@@ -43,7 +43,7 @@ class MethodSpec:
     has_world_model: bool = False  # attention maps need one
     lab_credit: str | None = None
     """How the method's reward update enters the reward-learning lab (`hprior reward-lab`): the
-    credit α of its prior term (hprior_jax.lab.learn.CREDITS; "none" = cross-entropy only;
+    credit α of its prior term (hprior_jax.lab.config.CREDITS; "none" = cross-entropy only;
     "bisimulation" = BISIM's bisimulation term instead of a prior); "own_program" = it trains
     in a program of its own shapes, built by `lab_rule`. None: not a lab rule (SAC learns no
     reward; RUNE learns PEBBLE's reward and changes only the agent's; MRN's meta step needs

@@ -11,9 +11,11 @@ Choices where the paper is ambiguous (one reason each):
 - Query q* = the action token of the last step (default `query="action"`): its output is the one
   TWM's heads read to predict s_{T+1}, and it is the only final-step token that sees both tokens
   of every step (the state query cannot see a_T). `query="state"` is kept as an ablation.
-- Mean over heads and layers: the paper's A has no head index (reviewer 3); TWM's play.py and
-  WiseRL average heads, WiseRL averages layers.
-- State and action entries added with equal weight (reviewer 1 asks about exactly that).
+- Mean over heads and layers: the paper's A has no head index (its third reviewer on
+  OpenReview, ICLR 2024, points that out); TWM's play.py and WiseRL average heads, WiseRL
+  averages layers.
+- State and action entries added with equal weight (the paper's first OpenReview reviewer
+  asks why they are weighted equally).
 - One causal pass instead of T incremental passes: with causal masking and XL memory holding
   every earlier token, token i's hidden states never depend on later tokens, so the cached layer
   inputs used at step k equal those of a full pass, and relative distances are the same; hence the

@@ -73,18 +73,19 @@ def dropout_key(key: jax.Array, impl: str) -> jax.Array:
 
 @dataclass(frozen=True)
 class WorldModelConfig:
-    """Architecture, data and optimiser settings. Defaults: appendix C / Table 5 and TWM's config."""
+    """Architecture, data and optimiser settings. Defaults: appendix C / Table 5 and TWM's config
+    (the transformer's sizes are TransformerXLConfig's, which holds them)."""
 
     obs_size: int
     act_size: int
     latent_dim: int = 32
     obs_hidden: tuple[int, ...] = (512, 512)
-    embed_dim: int = 256
-    num_heads: int = 4
-    head_dim: int = 64
-    num_layers: int = 10
-    ff_dim: int = 1024
-    dropout: float = 0.1
+    embed_dim: int = TransformerXLConfig.embed_dim
+    num_heads: int = TransformerXLConfig.num_heads
+    head_dim: int = TransformerXLConfig.head_dim
+    num_layers: int = TransformerXLConfig.num_layers
+    ff_dim: int = TransformerXLConfig.ff_dim
+    dropout: float = TransformerXLConfig.dropout
     head_hidden: tuple[int, ...] = (512, 512, 512, 512)  # TWM dyn_z_dims
     segment_len: int = 50  # world-model sequence length = query segment length (Table 5)
     memory_len: int = 50  # steps (Table 5)

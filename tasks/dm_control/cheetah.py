@@ -34,6 +34,8 @@ MAX_CONTACTS = 8
 
 class CheetahRun(DMControlTask):
     name = "cheetah_run"
+    goal_text = "Run forward (to the right) as fast as possible."
+    suite = ("cheetah", "run")
     obs_size = 17
 
     def __init__(self, contacts: str = "floor", max_contacts: int | None = MAX_CONTACTS):

@@ -88,6 +88,9 @@ class DMControlTask(Task):
     has_success = False
     cpu_group = CPU_GROUP  # batch 128: 1.7x (cheetah) to 3.6x (walker) the env steps/s
     render_camera: str | None = None  # the model's camera a video shows; None: its first
+    # the dm_control suite's (domain, task) a port reproduces, which the parity checks load
+    # (reference.py)
+    suite: tuple[str, str] = ("", "")
 
     def __init__(self, model: mujoco.MjModel, control_timestep: float, time_limit: float,
                  contacts: str = "floor"):

@@ -59,6 +59,8 @@ def _sensor_ids(model: mujoco.MjModel, *types) -> np.ndarray:
 
 class QuadrupedWalk(DMControlTask):
     name = "quadruped_walk"
+    goal_text = "Walk forward."
+    suite = ("quadruped", "walk")
     obs_size = 78
     render_camera = "y"  # tracks the torso from the side (the first, "global", is far)
 

@@ -7,7 +7,8 @@
                (`quadruped_height_check`);
   trajectory   the same actions from dm_control's reset states (`trajectory_check`);
   policy       episode returns of random and zero actions (`policy_returns`).
-Imported only by tests and benchmarks.
+Each port names the suite task it reproduces (its class's `suite`). Imported only by tests
+and benchmarks.
 """
 from __future__ import annotations
 
@@ -17,22 +18,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import tasks
 from tasks.base import TaskState
+from tasks.dm_control.common import DMControlTask
 from tasks.physics import mjx
 
-SUITE_NAMES = {
-    "cheetah_run": ("cheetah", "run"),
-    "walker_walk": ("walker", "walk"),
-    "quadruped_walk": ("quadruped", "walk"),
-}
 HORIZONS = (20, 100, 1000)
+
+
+def ports() -> list[str]:
+    """The registered DM Control ports, by name (not the model-less tasks that tests
+    register under the dm_control domain)."""
+    return [n for n in tasks.names() if tasks.info(n).domain == "dm_control"
+            and issubclass(tasks.task_class(n), DMControlTask)]
 
 
 # -- dm_control side --------------------------------------------------------------------
 def reference_env(name: str, seed: int):
     from dm_control import suite
 
-    domain, task = SUITE_NAMES[name]
+    domain, task = tasks.task_class(name).suite
     return suite.load(domain, task, task_kwargs={"random": seed})
 
 

@@ -36,6 +36,8 @@ MAX_CONTACTS = None
 
 class WalkerWalk(DMControlTask):
     name = "walker_walk"
+    goal_text = "Walk forward while staying upright, torso high."
+    suite = ("walker", "walk")
     obs_size = 24
 
     def __init__(self, move_speed: float = WALK_SPEED, contacts: str = "floor",

@@ -31,6 +31,10 @@ FAITHFUL_WRIST = "coacd:0.3:8:64:0,1"
 
 class ButtonPress(SawyerTask):
     name = "button_press"
+    goal_text = "Press the button in with the gripper."
+    metaworld_env = "button-press-v3"
+    scripted_policy = "SawyerButtonPressV3Policy"
+    object_joint = "btnbox_joint"
     faithful_wrist = FAITHFUL_WRIST
     # MJX keeps the 18 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 16 of its 18 condim-3 and 9 of its 32

@@ -23,6 +23,10 @@ GOAL_OFFSET = (-0.3, -0.45, 0.0)  # target_pos - the door's placement
 
 class DoorOpen(SawyerTask):
     name = "door_open"
+    goal_text = "Swing the door open."
+    metaworld_env = "door-open-v3"
+    scripted_policy = "SawyerDoorOpenV3Policy"
+    object_joint = "doorjoint"
     # MJX keeps the 16 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 4 of its 4 condim-3 and 12 of its 24
     # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts

@@ -26,6 +26,10 @@ GOAL_OFFSET = (0.1, -0.04, 0.0)  # target_pos - the lock's position at reset
 
 class DoorUnlock(SawyerTask):
     name = "door_unlock"
+    goal_text = "Turn the lock's lever to unlock the door."
+    metaworld_env = "door-unlock-v3"
+    scripted_policy = "SawyerDoorUnlockV3Policy"
+    object_joint = ("lock_link",)
     scene = SceneSpec(
         xml="sawyer_door_lock.xml",
         hand_init_pos=(0.0, 0.6, 0.2),

@@ -24,6 +24,10 @@ GOAL_OFFSET = (0.0, -0.16 - MAX_DIST, 0.09)  # target_pos - obj_init_pos
 
 class DrawerOpen(SawyerTask):
     name = "drawer_open"
+    goal_text = "Pull the drawer open."
+    metaworld_env = "drawer-open-v3"
+    scripted_policy = "SawyerDrawerOpenV3Policy"
+    object_joint = "goal_slidey"
     # MJX keeps the 8 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 4 of its 24 (condim-4) slots active
     # (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts none`, 20 episodes)

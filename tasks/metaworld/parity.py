@@ -14,8 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tasks.base import TaskState
-from tasks.metaworld.reference import (POLICY_READS_GOAL, explore_action, policy_env,
-                                      scripted_policy)
+from tasks.metaworld.reference import explore_action, policy_env, scripted_policy
 from tasks.physics import mjx
 
 
@@ -136,7 +135,7 @@ def scripted_success(task, name: str, episodes: int, seed: int = 0, batch: int =
         succ = np.zeros(batch)
         for _ in range(task.episode_length):
             obs = np.asarray(st.obs, np.float64)
-            if name in POLICY_READS_GOAL:
+            if task.policy_reads_goal:
                 obs[:, 36:39] = np.asarray(st.info["target_pos"])
             act = np.stack([np.clip(policy.get_action(o), -1, 1) for o in obs]).astype(np.float32)
             st = step(st, jnp.asarray(act))

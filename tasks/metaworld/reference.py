@@ -5,21 +5,16 @@ relpose quat 4, torquescale 1). MuJoCo 3.17 has mjNEQDATA = 12 (a 12th column th
 and the weld constraint do not read), so the stock `reset_mocap_welds` raises on this pin.
 We patch it to write the same 11 values into the first 11 columns and leave the 12th as
 compiled: numerically that is exactly what metaworld intends.
-Imported only by tests and benchmarks (metaworld is not needed to *run* a port).
+Each port names its metaworld env and scripted policy (class attributes of its class, read
+without building its scene). Imported only by tests and benchmarks (metaworld is not needed
+to *run* a port).
 """
 from __future__ import annotations
 
 import mujoco
 import numpy as np
 
-METAWORLD_ENV_NAMES = {
-    "drawer_open": "drawer-open-v3",
-    "button_press": "button-press-v3",
-    "door_open": "door-open-v3",
-    "window_open": "window-open-v3",
-    "door_unlock": "door-unlock-v3",
-    "sweep_into": "sweep-into-v3",
-}
+import tasks
 
 # metaworld's weld row: anchor 0, relpose identity (quat -1 0 0 0), torquescale 5
 WELD_ROW = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0])
@@ -32,6 +27,11 @@ def _reset_mocap_welds(self) -> None:
         for i in range(self.model.eq_data.shape[0]):
             if self.model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
                 self.model.eq_data[i, : WELD_ROW.size] = WELD_ROW
+
+
+def ports() -> list[str]:
+    """The registered MetaWorld ports, by name."""
+    return [n for n in tasks.names() if tasks.info(n).domain == "metaworld"]
 
 
 def patch_metaworld() -> None:
@@ -60,7 +60,7 @@ def make_env(task: str, seed: int = 0, partially_observable: bool = True):
     patch_metaworld()
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
-    env = ALL_V3_ENVIRONMENTS[METAWORLD_ENV_NAMES[task]]()
+    env = ALL_V3_ENVIRONMENTS[tasks.task_class(task).metaworld_env]()
     env._freeze_rand_vec = False
     env._set_task_called = True
     env.seeded_rand_vec = True
@@ -72,30 +72,19 @@ def make_env(task: str, seed: int = 0, partially_observable: bool = True):
     return env
 
 
-# scripted policies that steer by the goal slots obs[36:39] (metaworld runs its policies on
-# goal-observable envs); with the default hidden goal they head for (0, 0, 0). For these the
-# policy is given the goal: metaworld env built goal-observable, port obs filled from info.
-POLICY_READS_GOAL = ("sweep_into",)
-
-
 def policy_env(name: str, seed: int):
-    """The metaworld env whose observations the scripted policy is run on."""
-    return make_env(name, seed=seed, partially_observable=name not in POLICY_READS_GOAL)
+    """The metaworld env whose observations the scripted policy is run on: goal-observable
+    where the policy steers by the goal (`policy_reads_goal` of the port; the port's
+    observation then gets the goal from its info)."""
+    return make_env(name, seed=seed,
+                    partially_observable=not tasks.task_class(name).policy_reads_goal)
 
 
 def scripted_policy(task: str):
     """metaworld's scripted policy for the task (metaworld.policies)."""
     from metaworld import policies
 
-    names = {
-        "drawer_open": "SawyerDrawerOpenV3Policy",
-        "button_press": "SawyerButtonPressV3Policy",
-        "door_open": "SawyerDoorOpenV3Policy",
-        "window_open": "SawyerWindowOpenV3Policy",
-        "door_unlock": "SawyerDoorUnlockV3Policy",
-        "sweep_into": "SawyerSweepIntoV3Policy",
-    }
-    return getattr(policies, names[task])()
+    return getattr(policies, tasks.task_class(task).scripted_policy)()
 
 
 def explore_action(policy, obs, rng: np.random.Generator, noise: float, random: bool):

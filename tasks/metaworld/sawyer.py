@@ -64,6 +64,18 @@ class SawyerTask(Task):
     faithful_wrist: str | None = None
     max_contacts: int | None = None  # MJX's contact cap (build_scene); None: every slot
 
+    # the metaworld task a port reproduces, read by the checks against it (reference.py,
+    # closed_loop.py): its v3 env id and the class of its scripted policy (metaworld.policies)
+    metaworld_env: str = ""
+    scripted_policy: str = ""
+    # the object joint whose range the closed-loop check watches: a joint name, a 1-tuple
+    # naming the body whose first joint it is, or None (nothing to watch)
+    object_joint: str | tuple[str] | None = None
+    # the scripted policy steers by the goal slots obs[36:39] (metaworld runs its policies on
+    # goal-observable envs), which the default hidden goal zeroes: with it, the policy would
+    # head for (0, 0, 0), so the checks give it the goal
+    policy_reads_goal: bool = False
+
     def __init__(self, partially_observable: bool = True, solver_iterations: int = 5,
                  ls_iterations: int = 10, arm: bool = True, wrist: str | int | None = None,
                  metaworld_invweights: bool = True, keep_cylinders: bool = False,
@@ -71,7 +83,8 @@ class SawyerTask(Task):
         """partially_observable=True (default) zeroes the 3 goal slots of the observation.
 
         That is metaworld v3's own default (`_partially_observable = True`) and what BPref
-        and every PbRL baseline the paper compares with used (spec §7.2, BPref issue #8);
+        and every PbRL baseline the paper compares with used: BPref's `make_metaworld_env`
+        never changes it, so its goal slots are zeros (GitHub rll-research/BPref issue 8);
         pass False for metaworld's "goal observable" variant.
 
         solver_iterations / ls_iterations: metaworld's scene asks for 50 Newton iterations at

@@ -29,6 +29,11 @@ GOAL = (0.0, 0.84, 0.02)  # metaworld's self.goal, copied to _target_pos at ever
 
 class SweepInto(SawyerTask):
     name = "sweep_into"
+    goal_text = "Sweep the puck into the hole."
+    metaworld_env = "sweep-into-v3"
+    scripted_policy = "SawyerSweepIntoV3Policy"
+    object_joint = None  # the puck is free: no range to watch
+    policy_reads_goal = True
     # MJX keeps the 72 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 56 of its 104 (condim-4) slots active
     # (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts none`, 20 episodes)

@@ -27,6 +27,10 @@ GOAL_OFFSET = (0.2, 0.0, 0.0)  # target_pos - the window's placement
 
 class WindowOpen(SawyerTask):
     name = "window_open"
+    goal_text = "Slide the window open."
+    metaworld_env = "window-open-v3"
+    scripted_policy = "SawyerWindowOpenV3Policy"
+    object_joint = "window_slide"
     # MJX keeps the 12 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 8 of its 10 condim-3 and 6 of its 24
     # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts

@@ -1,4 +1,4 @@
-"""Closed-loop dynamics parity of the MetaWorld ports (issue 18): metaworld's scripted policy
+"""Closed-loop dynamics parity of the MetaWorld ports: metaworld's scripted policy
 drives metaworld's env and the MJX port; the port must *move* like metaworld, not only score
 like it. Fast: one short MJX run of button_press, a short C MuJoCo run of drawer_open's
 scene, and the constraint weights the scenes keep; the full six-task comparison (20 episodes
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import tasks
-from tasks.metaworld.closed_loop import (TASKS, make_task, run_metaworld, run_port,
-                                         run_port_c, targets)
+from tasks.metaworld.closed_loop import make_task, run_metaworld, run_port, run_port_c, targets
+from tasks.metaworld.reference import ports
 from tasks.metaworld.scene import load_full_model
 
 STEPS = 100  # button_press: the press happens at steps ~50-70
@@ -23,7 +23,7 @@ def button_runs():
 
 
 def test_button_press_stays_in_its_box(button_runs):
-    """The button must not go deeper than metaworld's own excursion + 2 cm (issue 18's
+    """The button must not go deeper than metaworld's own excursion + 2 cm (the closed-loop
     target is 1 cm, which the port meets over 20 episodes: -0.087 vs -0.084; 2 episodes
     here; this test is there to catch the pass-through, 27 cm deep). metaworld stops
     it with the cap against the box face at -0.083 (its joint range is [-0.06, 0], a soft
@@ -159,9 +159,10 @@ MISSES = {
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [
     pytest.param(n, marks=pytest.mark.xfail(reason=MISSES[n], strict=True)) if n in MISSES
-    else n for n in TASKS])
+    else n for n in ports()])
 def test_closed_loop_targets(name):
-    """Issue 18's targets per task, 20 episodes a side, 500 steps."""
+    """The closed-loop targets (`closed_loop.targets`) per task, 20 episodes a side, 500
+    steps."""
     mw = run_metaworld(name, episodes=20, seed=0)
     port = run_port(tasks.make(name), name, episodes=20, seed=0)
     res = targets(port, mw)
