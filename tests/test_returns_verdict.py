@@ -83,3 +83,17 @@ def test_verdict_words():
     assert rv.verdict(base | dict(holm_p=0.3, tost_holm_p=0.01)) == "equivalent within ±0.07"
     assert rv.verdict(base | dict(holm_p=0.3)) == "not detected (MDE80 0.150)"
     assert rv.verdict(base | dict(n=0)) == "not run yet"
+
+
+def test_the_rl_verdicts_plan_file_is_the_pre_registered_plan():
+    """benchmarks/results/rl_verdict/plan.json says what its README registered."""
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parent.parent / "benchmarks" / "results" / "rl_verdict"
+    plan = rv.Plan.load(folder / rv.PLAN)
+    assert plan.tasks == ("walker_walk", "cheetah_run") and plan.seeds == tuple(range(20))
+    assert plan.reference_seeds == tuple(range(5)) and plan.last_evals == 5
+    assert plan.contrasts == (("prior", "pebble"), ("rvar", "pebble"), ("prior", "rvar"))
+    assert plan.tost_margins == {("prior", "rvar"): {"walker_walk": 0.07, "cheetah_run": 0.09}}
+    readme = (folder / "README.md").read_text()
+    assert "seeds 0, 1, 2, ..., 19" in readme and "walker ±0.07, cheetah\n±0.09" in readme

@@ -7,7 +7,7 @@ what is committed, without run directories.
     python -m hprior_jax.experiments.returns_verdict collect GRID_ROOT [...] --into DIR
     python -m hprior_jax.experiments.returns_verdict report DIR
 
-The plan (`Plan`, `RL_VERDICT`): each seed's true return averaged over its last K
+The plan (`Plan`, kept as `plan.json` in the results folder): each seed's true return averaged over its last K
 evaluations, divided by the reference's (SAC on the true reward) mean over its seeds and the
 same steps; paired contrasts per task with a 95% t-interval, Holm over every planned test
 (a task not yet complete counts its tests as not rejected, p = 1), TOST where a margin is
@@ -29,7 +29,7 @@ from hprior_jax.plotting import save_figure
 from hprior_jax.run_log import read_jsonl
 from hprior_jax.statistics import holm, mean_ci, paired_comparison, tost_p
 
-EVALS, CORR, PIECES = "evals.csv", "reward_corr.csv", "pieces.csv"
+EVALS, CORR, PIECES, PLAN = "evals.csv", "reward_corr.csv", "pieces.csv", "plan.json"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,15 +44,18 @@ class Plan:
     tost_margins: dict  # {(a, b): {task: margin}}
     paper: dict  # {task: {method: normalized return}}: the paper's Table 7, for reference
 
-
-RL_VERDICT = Plan(
-    tasks=("walker_walk", "cheetah_run"), methods=("pebble", "prior", "rvar"),
-    seeds=tuple(range(20)), reference="sac", reference_seeds=tuple(range(5)), last_evals=5,
-    contrasts=(("prior", "pebble"), ("rvar", "pebble"), ("prior", "rvar")),
-    # half the paper's PRIOR − PEBBLE effect on the task (Table 7)
-    tost_margins={("prior", "rvar"): {"walker_walk": 0.07, "cheetah_run": 0.09}},
-    paper={"walker_walk": {"prior": 0.60, "pebble": 0.46},
-           "cheetah_run": {"prior": 0.51, "pebble": 0.33}})
+    @staticmethod
+    def load(path: Path) -> "Plan":
+        """A plan written as JSON beside its results (`plan.json`): the fields above, contrasts
+        as [a, b] pairs, tost_margins as {"a - b": {task: margin}}."""
+        d = json.loads(Path(path).read_text())
+        return Plan(
+            tasks=tuple(d["tasks"]), methods=tuple(d["methods"]), seeds=tuple(d["seeds"]),
+            reference=d["reference"], reference_seeds=tuple(d["reference_seeds"]),
+            last_evals=int(d["last_evals"]),
+            contrasts=tuple(tuple(c) for c in d["contrasts"]),
+            tost_margins={tuple(k.split(" - ")): v for k, v in d["tost_margins"].items()},
+            paper=d.get("paper", {}))
 
 
 # -- collect: a finished piece's summary into the results folder ---------------------------
@@ -247,10 +250,11 @@ def plot_curves(plan: Plan, by_run: dict, path: Path) -> Path:
     return out
 
 
-def report(into: Path, plan: Plan = RL_VERDICT) -> str:
-    """Writes report.md, scores.csv, contrasts.csv and curves.png into `into`; returns the
-    report's text."""
+def report(into: Path, plan: Plan | None = None) -> str:
+    """Writes report.md, scores.csv, contrasts.csv and curves.png into `into` (its plan:
+    `plan`, else `into/plan.json`); returns the report's text."""
     into = Path(into)
+    plan = plan or Plan.load(into / PLAN)
     by_run = curves(_read(into / EVALS))
     state = complete_tasks(plan, by_run)
     by_task, steps_used, score_rows = {}, {}, []
