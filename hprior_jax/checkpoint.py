@@ -13,11 +13,14 @@ import orbax.checkpoint as ocp
 
 class _NoMissingMetadataWarning(logging.Filter):
     """Orbax warns through absl, on every read of a checkpoint's leaf metadata, that the
-    item's folder has no _CHECKPOINT_METADATA (the manager keeps it one level up): a line
-    that says nothing to a user."""
+    item's folder has no _CHECKPOINT_METADATA (the manager keeps it one level up), and on
+    reading a step's metadata that it was not told how to restore the item (it was not
+    asked to): lines that say nothing to a user."""
+
+    NOISE = ("_CHECKPOINT_METADATA", "Please provide a `CheckpointHandlerRegistry`")
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return "_CHECKPOINT_METADATA" not in record.getMessage()
+        return not any(noise in record.getMessage() for noise in self.NOISE)
 
 
 logging.getLogger("absl").addFilter(_NoMissingMetadataWarning())
@@ -37,6 +40,11 @@ def _flat(tree) -> dict:
     return {_name(p): x for p, x in _with_path(tree) if x.size}
 
 
+def leaves_by_name(tree) -> dict:
+    """{leaf name: leaf} as a checkpoint stores `tree` (zero-size leaves left out)."""
+    return _flat(tree)
+
+
 class Checkpointer:
     def __init__(self, directory: Path, max_to_keep: int | None = 2):
         self.directory = Path(directory).absolute()
@@ -44,9 +52,15 @@ class Checkpointer:
             self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep,
                                                                  create=True))
 
-    def save(self, step: int, state) -> None:
-        self._manager.save(step, args=ocp.args.StandardSave(_flat(state)))
+    def save(self, step: int, state, metadata: dict | None = None) -> None:
+        """`metadata` (JSON) is written with the checkpoint, in the same atomic step."""
+        self._manager.save(step, args=ocp.args.StandardSave(_flat(state)),
+                           custom_metadata=metadata)
         self._manager.wait_until_finished()
+
+    def saved_metadata(self, step: int) -> dict:
+        """The `metadata` saved with the checkpoint at `step` ({} for one saved without)."""
+        return dict(self._manager.metadata(step).custom_metadata or {})
 
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
@@ -60,6 +74,9 @@ class Checkpointer:
 
     def stored_shape(self, name: str, step: int | None = None) -> tuple[int, ...]:
         return tuple(self._metadata(step)[name].shape)
+
+    def stored_shapes(self, step: int | None = None) -> dict[str, tuple[int, ...]]:
+        return {name: tuple(m.shape) for name, m in self._metadata(step).items()}
 
     def _metadata(self, step: int | None) -> dict:
         step = self.latest_step() if step is None else step

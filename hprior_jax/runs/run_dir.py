@@ -1,4 +1,5 @@
-"""Run directories: create, read config.json (today's format and the first one), extend.
+"""Run directories: create one, check an --out, extend a run's budget on resume (config.json
+of today's format and the first one is read back by `config_file`).
 
 Format 1 (before methods were plug-ins) wrote every section (`pebble`, `prior`) into every
 run's config.json, chose PRIOR-NRP and RVAR by `prior.variant`, and kept the method's state
@@ -14,9 +15,10 @@ import os
 import time
 from pathlib import Path
 
-from hprior_jax.config import RunConfig, differing_fields
+from hprior_jax.config import CHANGEABLE_ON_RESUME, RunConfig, differing_fields
 from hprior_jax.loop.run_files import EXTENDING, latest_checkpoint_step, write_atomic
-from hprior_jax.methods import registry
+from hprior_jax.runs.config_file import (  # noqa: F401  (read here by the commands)
+    load_run_config, read_config, read_json)
 
 
 class RunDirError(ValueError):
@@ -69,25 +71,7 @@ def write_config(run_dir: Path, cfg: RunConfig, run_info: dict | None) -> None:
 
 
 def run_info_of(run_dir: Path) -> dict | None:
-    return _read_json(run_dir).get("run_info")
-
-
-def load_run_config(run_dir: Path) -> RunConfig:
-    return read_config(_read_json(run_dir))
-
-
-def read_config(d: dict) -> RunConfig:
-    """config.json of either format -> today's RunConfig."""
-    d = {k: v for k, v in d.items() if k != "run_info"}
-    if d.get("format", 1) == 1:
-        d = registry.from_format_1(d)
-    return RunConfig.from_dict(d)
-
-
-# what a resumed run may change: the budget and the cadences (they decide when to evaluate
-# and save, not what is learned); everything else would make a different run
-CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
-                        "keep_checkpoints", "capture_video", "video_steps")
+    return read_json(run_dir).get("run_info")
 
 
 def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int | None]:
@@ -128,11 +112,3 @@ def _get(cfg, dotted: str):
     for part in dotted.split("."):
         cfg = getattr(cfg, part)
     return cfg
-
-
-def _read_json(run_dir: Path) -> dict:
-    path = Path(run_dir) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not a run directory "
-                                "written by `hprior train`")
-    return json.loads(path.read_text())
