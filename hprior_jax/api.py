@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from hprior_jax.config import RunConfig
@@ -48,8 +49,8 @@ def train(config: RunConfig, callbacks: tuple[Callable[[Evaluation], bool | None
 
 
 class Env:
-    """`num_envs` environments of `task` for interactive use: `reset()` -> obs [N, obs];
-    `step(action [N, act])` -> (obs, reward [N], done [N], info) with every environment reset
+    """`num_envs` environments of `task` for interactive use (`obs_size`, `action_size`):
+    `reset()` -> obs [N, obs]; `step(action [N, act])` -> (obs, reward [N], done [N], info) with every environment reset
     together at the time limit (`done` then true; info: success, episode_return);
     `render(index)` -> an RGB frame of environment `index`. Steps are jitted (the first call
     compiles)."""
@@ -57,6 +58,8 @@ class Env:
     def __init__(self, task: str, num_envs: int = 1, seed: int = 0, **task_options):
         self.env: VecEnv = make_vec_env(task, num_envs, **task_options)
         self.task = self.env.task
+        self.num_envs, self.obs_size, self.action_size = (num_envs, self.env.obs_size,
+                                                          self.env.action_size)
         self._key = jax.random.PRNGKey(seed)
         self._reset = jax.jit(self.env.reset)
         self._step = jax.jit(self.env.step)
@@ -70,9 +73,10 @@ class Env:
     def step(self, action) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
         if self.state is None:
             raise RuntimeError("call reset() before step()")
+        action = jnp.asarray(action, jnp.float32)
+        _check_actions(action.shape, self.env, self.task.name)
         self._key, key = jax.random.split(self._key)
-        self.state, tr = self._step(self.state, jax.numpy.asarray(action, jax.numpy.float32),
-                                    jax.numpy.int32(self.t), key)
+        self.state, tr = self._step(self.state, action, jnp.int32(self.t), key)
         self.t = (self.t + 1) % self.env.episode_length
         done = np.asarray(tr.truncated | tr.terminated)
         info = {"success": np.asarray(tr.success), "episode_return": np.asarray(tr.episode_return)}
@@ -95,9 +99,58 @@ def make_env(task: str, num_envs: int = 1, seed: int = 0, **task_options) -> Env
 def evaluate_policy(policy: Callable, task: str, episodes: int = 10, seed: int = 0,
                     **task_options) -> tuple[np.ndarray, np.ndarray]:
     """(true return [episodes], success [episodes]) of whole episodes of `task` under
-    `policy` (obs [N, obs] -> action [N, act], a JAX function: e.g. `load_policy(path)`),
-    run side by side from `seed`'s starts."""
+    `policy` (obs [N, obs] -> action [N, act]), run side by side from `seed`'s starts. A JAX
+    function (e.g. `load_policy(path)`) runs compiled with the episodes; any other (NumPy,
+    PyTorch, one that keeps state between calls) is called once per step on the host."""
     env = make_vec_env(task, episodes, **task_options)
-    returns, successes = jax.jit(lambda key: evaluate_batch(env, policy, key))(
-        jax.random.PRNGKey(seed))
+    key = jax.random.PRNGKey(seed)
+    if _is_jax_function(policy, env, task):
+        returns, successes = jax.jit(lambda key: evaluate_batch(env, policy, key))(key)
+    else:
+        returns, successes = _evaluate_on_host(policy, env, task, key)
     return np.asarray(returns), np.asarray(successes)
+
+
+def _is_jax_function(policy: Callable, env: VecEnv, task: str) -> bool:
+    """Traces `policy` once: True when it maps a traced batch of observations to traced
+    actions (of the task's shape). NumPy code fails on a traced input, or returns a constant
+    that compiling would freeze into every step: False."""
+    obs = jax.ShapeDtypeStruct((env.num_envs, env.obs_size), jnp.float32)
+    traced = []
+
+    def probe(o):
+        out = policy(o)
+        traced.append(isinstance(out, jax.core.Tracer))
+        return jnp.asarray(out)
+
+    try:
+        actions = jax.eval_shape(probe, obs)
+    except Exception:  # noqa: BLE001 - not traceable: the host calls it (and names its error)
+        return False
+    if traced[0]:
+        _check_actions(actions.shape, env, task)
+    return traced[0]
+
+
+def _evaluate_on_host(policy: Callable, env: VecEnv, task: str, key: jax.Array):
+    state = jax.jit(env.reset)(key)
+    advance = jax.jit(env.advance)
+    for t in range(env.episode_length):
+        obs = np.asarray(state.task.obs)
+        try:
+            action = np.asarray(policy(obs), np.float32)
+        except Exception as e:  # noqa: BLE001 - the user's policy: its own error, named
+            reason = (str(e).strip().splitlines() or [""])[0][:200]
+            raise ValueError(f"the policy fails on observations of {task} (shape "
+                             f"{obs.shape}): {type(e).__name__}: {reason}") from e
+        _check_actions(action.shape, env, task)
+        state, _ = advance(state, action, np.int32(t))
+    return state.episode_return, state.episode_success
+
+
+def _check_actions(shape: tuple, env, task: str) -> None:
+    expected = (env.num_envs, env.action_size)
+    if tuple(shape) != expected:
+        raise ValueError(f"expected actions of shape {expected} ({env.num_envs} environments "
+                         f"of {task}, {env.action_size} action dimensions), got "
+                         f"{tuple(shape)}")

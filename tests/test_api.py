@@ -61,6 +61,44 @@ def test_evaluate_policy_runs_whole_episodes_of_a_policy():
     assert not np.allclose(returns, still)  # the policy's actions reach the episodes
 
 
+def test_evaluate_policy_calls_a_numpy_policy_at_every_step():
+    """A NumPy policy (it cannot be traced) gives the returns of the same policy in JAX; one
+    that keeps state between calls is called once per step, on real observations, instead of
+    being frozen into one constant action by tracing."""
+    numpy_policy = lambda obs: np.tanh(-3.0 * obs[:, :1])
+    jax_policy = lambda obs: jnp.tanh(-3.0 * obs[:, :1])
+    on_host = hprior_jax.evaluate_policy(numpy_policy, "toy_point", episodes=3)
+    compiled = hprior_jax.evaluate_policy(jax_policy, "toy_point", episodes=3)
+    np.testing.assert_allclose(on_host[0], compiled[0], rtol=1e-5)
+    np.testing.assert_array_equal(on_host[1], compiled[1])
+    seen = []
+
+    def alternating(obs):  # state between calls: +1, -1, +1, ...
+        seen.append(obs)
+        return np.full((len(obs), 1), (-1.0) ** len(seen))
+
+    hprior_jax.evaluate_policy(alternating, "toy_point", episodes=2)
+    real = [o for o in seen if isinstance(o, np.ndarray)]
+    assert len(real) == 20 and all(o.shape == (2, 2) for o in real)  # 20 steps an episode
+
+
+def test_a_policy_or_action_of_the_wrong_shape_is_named():
+    with pytest.raises(ValueError, match=r"expected actions of shape \(3, 1\) \(3 environments "
+                                         r"of toy_point, 1 action dimensions\), got \(3, 6\)"):
+        hprior_jax.evaluate_policy(lambda obs: jnp.zeros((obs.shape[0], 6)), "toy_point",
+                                   episodes=3)
+    with pytest.raises(ValueError, match=r"the policy fails on observations of toy_point "
+                                         r"\(shape \(3, 2\)\): TypeError"):
+        hprior_jax.evaluate_policy(lambda obs: obs @ jnp.ones((17, 6)), "toy_point", episodes=3)
+    env = hprior_jax.make_env("toy_point", num_envs=2)
+    assert (env.num_envs, env.obs_size, env.action_size) == (2, 2, 1)
+    env.reset()
+    with pytest.raises(ValueError, match=r"expected actions of shape \(2, 1\).*got \(2,\)"):
+        env.step(np.zeros(2))
+    obs, *_ = env.step(np.zeros((2, 1)))
+    assert obs.shape == (2, 2)
+
+
 @pytest.mark.slow  # cheetah's programs: ~100 s on 2 cores
 def test_capture_video_writes_each_seeds_episode_at_every_kth_evaluation(tmp_path):
     """On cheetah (the toy task has no scene): every 2nd evaluation, one short MP4 a seed."""
