@@ -2,6 +2,8 @@
 a notebook, evaluate a policy (e.g. one exported by `hprior export`, `load_policy`)."""
 from __future__ import annotations
 
+import contextlib
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -10,12 +12,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hprior_jax import dir_lock, provenance
 from hprior_jax.config import RunConfig
 from hprior_jax.envs import VecEnv, make_env as make_vec_env
 from hprior_jax.evaluate import evaluate_policy as evaluate_batch
+from hprior_jax.loop.run_files import latest_checkpoint_step, settle_extension
 from hprior_jax.render import render_frames
-from hprior_jax.runs.build import train as train_run
-from hprior_jax.runs.run_dir import prepare_run_dir
+from hprior_jax.runs.build import build_engine, train as train_run
+from hprior_jax.runs.run_dir import (PYTHON, check_out_dir, load_run_config, prepare_run_dir,
+                                     resume_config, run_dir_path)
 
 
 @dataclass(frozen=True)
@@ -30,12 +35,14 @@ class Evaluation:
 
 
 def train(config: RunConfig, callbacks: tuple[Callable[[Evaluation], bool | None], ...] = (),
-          progress: bool = True) -> Path:
+          progress: bool = True, resume: bool = False) -> Path:
     """Trains `config` (e.g. `hprior_jax.presets.train_preset(task, algo, preset, out=...)`)
-    into a new run directory and returns its path. Each callback
-    gets an `Evaluation` after every evaluation; one returning True stops the run there,
-    checkpointed (`hprior train --resume DIR` continues it)."""
-    run_dir = prepare_run_dir(config)
+    into a new run directory and returns its path, as `hprior train` does: the directory is
+    locked while it trains and its config.json records what produced it (`run_info`). Each
+    callback gets an `Evaluation` after every evaluation; one returning True stops the run
+    there, checkpointed. `resume=True` continues the run in `config.out` from its latest
+    checkpoint (as `hprior train --resume`): `config` may differ from the run's only in the
+    budget and the cadences (`hprior_jax.config.CHANGEABLE_ON_RESUME`)."""
     seeds = tuple(config.seeds)
 
     def on_evaluation(step, returns, successes) -> bool:
@@ -43,9 +50,38 @@ def train(config: RunConfig, callbacks: tuple[Callable[[Evaluation], bool | None
                                 None if successes is None else np.asarray(successes))
         return any([bool(callback(evaluation)) for callback in callbacks])
 
-    train_run(config, run_dir, progress=progress,
-              on_evaluation=on_evaluation if callbacks else None)
+    run = _resumed if resume else _started
+    with run(config) as (cfg, run_dir, options):
+        train_run(cfg, run_dir, progress=progress,
+                  on_evaluation=on_evaluation if callbacks else None, **options)
     return run_dir
+
+
+@contextlib.contextmanager
+def _started(config: RunConfig):
+    """A new run directory, locked: checked and its engine built before anything is
+    written."""
+    check_out_dir(run_dir_path(config), PYTHON)
+    engine = build_engine(config)
+    run_dir = prepare_run_dir(config, provenance.run_info(), PYTHON)
+    with dir_lock.DirLock(run_dir):
+        yield config, run_dir, dict(engine=engine)
+
+
+@contextlib.contextmanager
+def _resumed(config: RunConfig):
+    """The run in `config.out`, locked, with the changes `config` may make to it."""
+    if not config.out:
+        raise ValueError("resume=True continues the run in config.out: set it to the run's "
+                         "directory")
+    run_dir = Path(config.out)
+    load_run_config(run_dir)  # a run directory at all, before locking it
+    with dir_lock.DirLock(run_dir):
+        note = settle_extension(run_dir, latest_checkpoint_step(run_dir))
+        if note:
+            print(note, file=sys.stderr, flush=True)
+        cfg, saved_capacity = resume_config(run_dir, config, PYTHON)
+        yield cfg, run_dir, dict(resume=True, saved_capacity=saved_capacity)
 
 
 class Env:

@@ -1,15 +1,24 @@
 """The Python entry points: train with callbacks (one stops the run, which resumes), an env
 a notebook steps and renders, a policy evaluated."""
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import hprior_jax
-from hprior_jax import cli
+from hprior_jax import cli, dir_lock
 from hprior_jax.agents.sac import SACConfig
 from hprior_jax.config import RunConfig
-from hprior_jax.runs.run_dir import load_run_config
+from hprior_jax.runs.run_dir import RunDirError, load_run_config
 from tests.test_life_cycle import _rows
+
+ROOT = Path(__file__).resolve().parent.parent
 
 TOY = dict(task="toy_point", steps=120, num_seed_steps=20, chunk_steps=20, eval_every=40,
            checkpoint_every=120, num_eval_episodes=2, seeds=(3, 4),
@@ -35,6 +44,39 @@ def test_a_callback_sees_every_evaluation_and_can_stop_the_run_which_resumes(tmp
     assert cli.main(["train", "--resume", str(run_dir), "--no-progress"]) == 0  # to the budget
     assert load_run_config(run_dir).steps == 120
     assert _rows(run_dir / "eval.csv")[-1][0] == "120"
+
+
+def test_the_api_locks_its_run_records_provenance_and_resumes_in_python_words(tmp_path):
+    """`hprior_jax.train` keeps the run directory's guarantees: locked while it trains (another
+    real process cannot take it), `run_info` in config.json; running the cell again is
+    refused in Python's words, and `resume=True` continues the run."""
+    cfg = RunConfig(**TOY, out=str(tmp_path / "run"))
+    taken = []
+
+    def another_process_takes_the_lock(evaluation) -> bool:
+        if not taken:
+            taken.append(subprocess.run(
+                [sys.executable, "-c", "import sys; from hprior_jax import dir_lock; "
+                 "dir_lock.hold(sys.argv[1])", cfg.out], cwd=ROOT, capture_output=True,
+                text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}))
+        return evaluation.step >= 80
+
+    run_dir = hprior_jax.train(cfg, callbacks=(another_process_takes_the_lock,),
+                               progress=False)
+    assert taken[0].returncode != 0 and f"is in use by PID {os.getpid()}" in taken[0].stderr
+    info = json.loads((run_dir / "config.json").read_text())["run_info"]
+    assert info["versions"]["hprior_jax"] == hprior_jax.__version__ and info["command"]
+    with pytest.raises(RunDirError) as refused:
+        hprior_jax.train(cfg)
+    assert "hprior_jax.train(config, resume=True)" in str(refused.value)
+    assert "--" not in str(refused.value) and "config.out" in str(refused.value)
+    wider = dataclasses.replace(cfg, sac=SACConfig(hidden_dim=32, hidden_depth=1, batch_size=8))
+    with pytest.raises(ValueError, match=r"resume=True continues .* config.sac.hidden_dim "
+                                         r"\(16 -> 32\)"):
+        hprior_jax.train(wider, resume=True)
+    assert hprior_jax.train(cfg, resume=True, progress=False) == run_dir
+    assert _rows(run_dir / "eval.csv")[-1][0] == "120"
+    dir_lock.hold(run_dir).release()  # given back when training ended
 
 
 def test_an_env_a_notebook_steps_and_renders():
