@@ -7,7 +7,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from hprior_jax.config import DEFAULT_PRESET
+from hprior_jax.config import CHANGEABLE_ON_RESUME, DEFAULT_PRESET
 from hprior_jax.methods import registry
 
 
@@ -158,8 +158,9 @@ def _train_description(algo: str) -> str:
             "--preset {paper,reduced,smoke}; --teacher "
             f"{{{','.join(sorted(TEACHERS))}}} (a B-Pref teacher); --eval-budget {{paper,cpu}} "
             "(cpu: 5 evaluation episodes every 10k steps; see README); --no-progress (no progress "
-            "bar); --resume DIR continues an interrupted run, where only --steps, --eval-every, "
-            "--checkpoint-every and --num-eval-episodes may change. Ctrl-C once finishes the "
+            "bar); --resume DIR continues an interrupted run, where only "
+            f"{', '.join('--' + k.replace('_', '-') for k in CHANGEABLE_ON_RESUME)} may "
+            "change. Ctrl-C once finishes the "
             "chunk in flight and saves a checkpoint; twice stops at once. --devices N splits "
             "the seeds over N devices (default: as many as divide the seeds evenly; a run may "
             "resume on another count); several hosts: README, 'Many devices and hosts'. "
