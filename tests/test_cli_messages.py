@@ -43,3 +43,26 @@ def test_train_help_names_every_flag_a_resume_may_change(capsys):
     resume = text[text.index("--resume DIR continues"):].split(" may change")[0]
     for name in CHANGEABLE_ON_RESUME:
         assert "--" + name.replace("_", "-") in resume, (name, resume)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["label", "--dir", "{dir}", "--port", "99999"], "--port 99999: a port is 1-65535"),
+    (["label", "--dir", "{dir}", "--port", "-1"], "--port -1: a port is 1-65535"),
+    (["label", "--dir", "{dir}", "--host", "300.1.1.1"],
+     "--host 300.1.1.1: this machine cannot serve on it"),
+    (["label", "--dir", "{dir}", "--host", "192.0.2.1"],  # a documentation address: not ours
+     "--host 192.0.2.1: this machine cannot serve on it"),
+    (["train", "--task", "toy_point", "--algo", "pebble", "--teacher", "human", "--preset",
+      "smoke", "--label-port", "70000", "--out", "{dir}"], "--label-port 70000: a port is"),
+])
+def test_a_labelling_address_is_checked_before_anything_is_written(argv, says, tmp_path,
+                                                                   capsys):
+    (tmp_path / "queries").mkdir()
+    (tmp_path / "queries" / "queries.jsonl").write_text("")  # a query folder (empty)
+    argv = [a.format(dir=tmp_path / ("queries" if argv[0] == "label" else "run"))
+            for a in argv]
+    before = sorted(tmp_path.rglob("*"))
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {says}"), err
+    assert sorted(tmp_path.rglob("*")) == before

@@ -50,6 +50,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
 
     # before anything touches a device: with several processes the mesh spans them all
     several = not help_asked and devices.initialize_distributed()
+    labelling = None if help_asked else _ask_options(known)  # checked before anything is written
 
     if known.resume and not help_asked:
         # the flags over the run's own config: resume_config refuses what may not change
@@ -106,7 +107,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         print(f"resuming from step {step or 0} of {cfg.steps}", flush=True)
     try:
         train(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
-                 saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known),
+                 saved_capacity=saved_capacity, engine=engine, labelling=labelling,
                  interrupt=stop,
                  compile_ahead="off" if known.no_compile_ahead
                  else known.compile_ahead.replace("-", "_"))
@@ -192,7 +193,7 @@ def _ask_options(known):
     default = ServerOptions()
     server = ServerOptions(known.label_host or default.host,
                            default.port if known.label_port is None else known.label_port,
-                           known.label_token)
+                           known.label_token).check("--label-host", "--label-port")
     timeout = AskOptions().timeout_s if known.label_timeout is None else known.label_timeout
     return AskOptions(server=server, timeout_s=timeout)
 
