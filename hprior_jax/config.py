@@ -20,12 +20,11 @@ from hprior_jax.methods import registry
 
 PRESETS = ("paper", "reduced", "smoke")
 DEFAULT_PRESET = "paper"  # of `hprior train` and `hprior grid`: the appendix's budget
-# fields every config.json has held since its first format: read without one, a run would
-# silently become another (a walker run restored as cheetah); later fields default to what
-# runs before them did
+# fields every config.json has held since its first format (and RunConfig's own sections):
+# read without one, a run would silently become another (a walker run restored as cheetah);
+# later fields default to what runs before them did
 REQUIRED = ("task", "algo", "preset", "seeds", "steps", "num_seed_steps", "eval_every",
-            "num_eval_episodes", "checkpoint_every", "chunk_steps", "replay_capacity", "out",
-            "sac")
+            "num_eval_episodes", "checkpoint_every", "chunk_steps", "replay_capacity", "out")
 # what a resumed run may change: the budget and the cadences (they decide when to evaluate
 # and save, not what is learned); everything else would make a different run
 CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
@@ -148,7 +147,9 @@ class RunConfig:
     def from_dict(d: dict) -> "RunConfig":
         """The inverse of `to_json` (format 2; `hprior_jax.loop.run_dir` reads format 1)."""
         d = {k: v for k, v in d.items() if k != "format"}
-        missing = [k for k in REQUIRED if k not in d]
+        sections = [k for k, t in typing.get_type_hints(RunConfig).items()
+                    if dataclasses.is_dataclass(t)]
+        missing = [k for k in (*REQUIRED, *sections) if k not in d]
         if missing:
             raise ValueError(f"field(s) {', '.join(map(repr, missing))} missing (a run's own "
                              "settings have no default to fall back on)")
