@@ -4,7 +4,8 @@ The Python API (`hprior_jax.make_env`, `train`, `load_policy`, ...) is imported 
 so `import hprior_jax.<module>` (every `hprior` command) does not load jax for it."""
 from tasks import _xla_flags  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
-__version__ = "0.1.0"
+from hprior_jax._version import __version__  # noqa: F401
+
 _API = {"Env": "api", "Evaluation": "api", "evaluate_policy": "api", "make_env": "api",
         "train": "api", "export_seed": "export", "load_policy": "export",
         "load_reward": "export"}

@@ -4,7 +4,12 @@ Keys are raw uint32 arrays, so the state restores bit-exactly and resuming conti
 same random streams as an uninterrupted run."""
 from __future__ import annotations
 
+import contextlib
+import errno
 import logging
+import os
+import sys
+import traceback
 from pathlib import Path
 
 import jax
@@ -13,14 +18,73 @@ import orbax.checkpoint as ocp
 
 class _NoMissingMetadataWarning(logging.Filter):
     """Orbax warns through absl, on every read of a checkpoint's leaf metadata, that the
-    item's folder has no _CHECKPOINT_METADATA (the manager keeps it one level up): a line
-    that says nothing to a user."""
+    item's folder has no _CHECKPOINT_METADATA (the manager keeps it one level up), and on
+    reading a step's metadata that it was not told how to restore the item (it was not
+    asked to): lines that say nothing to a user."""
+
+    NOISE = ("_CHECKPOINT_METADATA", "Please provide a `CheckpointHandlerRegistry`")
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return "_CHECKPOINT_METADATA" not in record.getMessage()
+        return not any(noise in record.getMessage() for noise in self.NOISE)
 
 
 logging.getLogger("absl").addFilter(_NoMissingMetadataWarning())
+
+
+class _HeldLogs(logging.Filter):
+    """Holds back what orbax logs through absl while a save runs: a full disk makes each of
+    its writer threads log a traceback before the save raises. A save that fails for want of
+    space drops them (one line says it); otherwise they are logged as they came."""
+
+    def __init__(self):
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        self.records.append(record)
+        return False
+
+    @contextlib.contextmanager
+    def held(self):
+        logger = logging.getLogger("absl")
+        logger.addFilter(self)
+        try:
+            yield self
+        finally:
+            logger.removeFilter(self)
+            for record in self.records:
+                logger.handle(record)
+
+
+def _quiet_late_writes() -> None:
+    """After a save failed, TensorStore's writes still in flight finish on its own threads
+    and call back into the event loop orbax has closed; each such RuntimeError is printed
+    as a traceback (through sys.excepthook), dozens of them, some after the error line. They
+    say nothing the error did not: drop them (and only them) from then on."""
+    previous = sys.excepthook
+    if getattr(previous, "quiet_late_writes", False):
+        return
+
+    def hook(kind, value, tb):
+        frames = traceback.extract_tb(tb)
+        if not (kind is RuntimeError and str(value) == "Event loop is closed" and frames
+                and frames[0].name == "call_soon_threadsafe"):
+            previous(kind, value, tb)
+
+    hook.quiet_late_writes = True
+    sys.excepthook = hook
+
+
+def _no_space(error: BaseException) -> bool:
+    """Whether `error` (orbax's or TensorStore's, often not an OSError) says the disk is
+    full."""
+    while error is not None:
+        text = str(error)
+        if (isinstance(error, OSError) and error.errno == errno.ENOSPC
+                or "No space left on device" in text or "os_error_code='28'" in text):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
 
 
 def _with_path(tree):
@@ -37,16 +101,40 @@ def _flat(tree) -> dict:
     return {_name(p): x for p, x in _with_path(tree) if x.size}
 
 
+def leaves_by_name(tree) -> dict:
+    """{leaf name: leaf} as a checkpoint stores `tree` (zero-size leaves left out)."""
+    return _flat(tree)
+
+
 class Checkpointer:
     def __init__(self, directory: Path, max_to_keep: int | None = 2):
         self.directory = Path(directory).absolute()
         self._manager = ocp.CheckpointManager(
             self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep,
                                                                  create=True))
+        self.failed = False  # a save ran out of space: closing then says nothing more
 
-    def save(self, step: int, state) -> None:
-        self._manager.save(step, args=ocp.args.StandardSave(_flat(state)))
-        self._manager.wait_until_finished()
+    def save(self, step: int, state, metadata: dict | None = None) -> None:
+        """`metadata` (JSON) is written with the checkpoint, in the same atomic step. A full
+        disk raises OSError(ENOSPC) naming the checkpoint's folder, and nothing else is
+        printed."""
+        with _HeldLogs().held() as logs:
+            try:
+                self._manager.save(step, args=ocp.args.StandardSave(_flat(state)),
+                                   custom_metadata=metadata)
+                self._manager.wait_until_finished()
+            except Exception as e:
+                if not _no_space(e):
+                    raise
+                logs.records.clear()
+                self.failed = True
+                _quiet_late_writes()
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC),
+                              str(self.directory / str(step))) from None
+
+    def saved_metadata(self, step: int) -> dict:
+        """The `metadata` saved with the checkpoint at `step` ({} for one saved without)."""
+        return dict(self._manager.metadata(step).custom_metadata or {})
 
     def latest_step(self) -> int | None:
         return self._manager.latest_step()
@@ -60,6 +148,9 @@ class Checkpointer:
 
     def stored_shape(self, name: str, step: int | None = None) -> tuple[int, ...]:
         return tuple(self._metadata(step)[name].shape)
+
+    def stored_shapes(self, step: int | None = None) -> dict[str, tuple[int, ...]]:
+        return {name: tuple(m.shape) for name, m in self._metadata(step).items()}
 
     def _metadata(self, step: int | None) -> dict:
         step = self.latest_step() if step is None else step
@@ -84,4 +175,12 @@ class Checkpointer:
         return step, jax.tree.unflatten(jax.tree.structure(like), leaves)
 
     def close(self) -> None:
-        self._manager.close()
+        if not self.failed:
+            self._manager.close()
+            return
+        with _HeldLogs().held() as logs:
+            try:
+                self._manager.close()
+            except Exception:  # noqa: BLE001 - the same full disk, already reported
+                pass
+            logs.records.clear()

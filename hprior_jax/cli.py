@@ -14,6 +14,8 @@
 """
 from __future__ import annotations
 
+import difflib
+import os
 import sys
 
 from tasks import _xla_flags  # noqa: F401  (before anything imports jax)
@@ -34,6 +36,10 @@ commands:
   reward-lab which method learns the better reward from the same labels, on fixed data
   tasks      list the registered tasks
   methods    list the registered methods (--algo)
+
+options:
+  -h, --help     this message
+  -V, --version  the version and git commit
 """
 
 
@@ -67,10 +73,16 @@ def main(argv: list[str] | None = None) -> int:
                 "attention": trained_runs.attention, "grid": grid.grid, "report": grid.report,
                 "reward-lab": reward_lab.reward_lab, "tasks": _tasks, "methods": _methods}
     if command not in commands:
-        print(f"unknown command {command!r}\n\n{USAGE}", file=sys.stderr)
+        close = difflib.get_close_matches(command, commands, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        print(f"unknown command {command!r}{hint}\n\n{USAGE}", file=sys.stderr)
         return 2
     try:
         return commands[command](rest)
+    except BrokenPipeError:  # the reader went away (`hprior train --help | head -1`)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # the exit's flush has nowhere to fail
+        return 141  # as a process the pipe's signal ended
     except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError,
             PermissionError, DirInUse) as e:
         print(f"error: {e}", file=sys.stderr)

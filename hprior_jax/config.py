@@ -20,6 +20,15 @@ from hprior_jax.methods import registry
 
 PRESETS = ("paper", "reduced", "smoke")
 DEFAULT_PRESET = "paper"  # of `hprior train` and `hprior grid`: the appendix's budget
+# fields every config.json has held since its first format (and RunConfig's own sections):
+# read without one, a run would silently become another (a walker run restored as cheetah);
+# later fields default to what runs before them did
+REQUIRED = ("task", "algo", "preset", "seeds", "steps", "num_seed_steps", "eval_every",
+            "num_eval_episodes", "checkpoint_every", "chunk_steps", "replay_capacity", "out")
+# what a resumed run may change: the budget and the cadences (they decide when to evaluate
+# and save, not what is learned); everything else would make a different run
+CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
+                        "keep_checkpoints", "capture_video", "video_steps")
 FORMAT = 2  # config.json layout: 2 = per-method sections (1 = every run had pebble and prior)
 
 
@@ -138,6 +147,12 @@ class RunConfig:
     def from_dict(d: dict) -> "RunConfig":
         """The inverse of `to_json` (format 2; `hprior_jax.loop.run_dir` reads format 1)."""
         d = {k: v for k, v in d.items() if k != "format"}
+        sections = [k for k, t in typing.get_type_hints(RunConfig).items()
+                    if dataclasses.is_dataclass(t)]
+        missing = [k for k in (*REQUIRED, *sections) if k not in d]
+        if missing:
+            raise ValueError(f"field(s) {', '.join(map(repr, missing))} missing (a run's own "
+                             "settings have no default to fall back on)")
         # written before a physics option existed: the physics the run was trained on
         domain = envs.task_info(d["task"]).domain if "task" in d else None
         for name, option in envs.PHYSICS_OPTIONS.items():
@@ -176,12 +191,42 @@ def _differing(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def _dataclass_from_dict(cls, d: dict):
-    """A (nested) frozen dataclass from its `dataclasses.asdict` form."""
+def _dataclass_from_dict(cls, d: dict, prefix: str = ""):
+    """A (nested) frozen dataclass from its `dataclasses.asdict` form; a field of the wrong
+    type or an unknown one raises a ValueError that names it (a hand-edited config.json)."""
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for k, v in d.items():
-        if dataclasses.is_dataclass(hints[k]) and isinstance(v, dict):
-            v = _dataclass_from_dict(hints[k], v)
+        name = prefix + k
+        if k not in hints:
+            raise ValueError(f"unknown field {name!r}")
+        if dataclasses.is_dataclass(hints[k]) and not isinstance(v, hints[k]):
+            if not isinstance(v, dict):
+                raise ValueError(f"field {name!r} is {json.dumps(v)}, expected an object of "
+                                 "fields")
+            v = _dataclass_from_dict(hints[k], v, f"{name}.")
+        else:
+            _check_type(name, v, hints[k])
         kwargs[k] = tuple(v) if isinstance(v, list) else v
     return cls(**kwargs)
+
+
+_TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+def _check_type(name: str, value, hint) -> None:
+    if typing.get_origin(hint) is Literal:
+        ok, expected = value in typing.get_args(hint), " or ".join(
+            repr(a) for a in typing.get_args(hint))
+    elif typing.get_origin(hint) is tuple:  # tuple[int, ...]: the seeds
+        ok = isinstance(value, (list, tuple)) and all(
+            isinstance(x, int) and not isinstance(x, bool) for x in value)
+        expected = "a list of integers"
+    elif hint in _TYPE_NAMES:
+        kinds = (int, float) if hint is float else hint
+        ok = isinstance(value, kinds) and (hint is bool or not isinstance(value, bool))
+        expected = _TYPE_NAMES[hint]
+    else:
+        return
+    if not ok:
+        raise ValueError(f"field {name!r} is {json.dumps(value)}, expected {expected}")

@@ -9,7 +9,7 @@ import time
 from importlib import metadata
 from pathlib import Path
 
-import hprior_jax
+from hprior_jax._version import __version__
 
 PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "orbax-checkpoint",
             "numpy", "dm-control", "metaworld")
@@ -17,7 +17,7 @@ PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "orbax-che
 
 def git_commit() -> str | None:
     """The checkout's commit, suffixed `-dirty` when tracked files differ; None outside git."""
-    root = Path(hprior_jax.__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parent.parent
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                                 text=True, timeout=10, check=True).stdout.strip()
@@ -29,7 +29,7 @@ def git_commit() -> str | None:
 
 
 def versions() -> dict[str, str]:
-    out = {"python": platform.python_version(), "hprior_jax": hprior_jax.__version__}
+    out = {"python": platform.python_version(), "hprior_jax": __version__}
     for name in PACKAGES:
         try:
             out[name] = metadata.version(name)
@@ -55,4 +55,4 @@ def run_info(command: list[str] | None = None) -> dict:
 
 def version_string() -> str:
     commit = git_commit()
-    return f"hprior_jax {hprior_jax.__version__}" + (f" (git {commit})" if commit else "")
+    return f"hprior_jax {__version__}" + (f" (git {commit})" if commit else "")

@@ -385,6 +385,8 @@ def test_grid_and_train_share_the_preset_flag_and_default(tmp_path, monkeypatch)
     (["report", "{missing}"], "is not a directory"),
     (["report", "{busy}"], "no run directories with eval.csv under"),
     (["grid", "--tasks", "toy_point", "--algos", "ppo", "--out", "{new}"], "unknown algorithm"),
+    (["grid", "--tasks", "toy_point", "--algos", "sac", "--out", "{run}"],
+     "is a run directory of `hprior train`, not a grid's results folder"),
     (["frobnicate"], "unknown command"),
 ])
 def test_bad_input_ends_with_one_clear_line(argv, says, finished, tmp_path, capsys):

@@ -213,7 +213,7 @@ def test_an_io_error_ends_with_one_line_and_the_run_still_resumes(site, base, tm
             raise full(self.eval_csv_path)
         monkeypatch.setattr(RunLog, "log_eval", write)
     else:
-        def write(self, step, state):
+        def write(self, step, state, metadata=None):
             (self.directory / f"{step}.orbax-checkpoint-tmp-1").mkdir()
             raise full(self.directory / f"{step}.orbax-checkpoint-tmp-1")
         monkeypatch.setattr(Checkpointer, "save", write)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from hprior_jax.methods import registry
 
@@ -52,6 +53,10 @@ def grid(argv: list[str]) -> int:
                              "--capture-video`")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
+    if (Path(args.out) / "config.json").exists():
+        raise ValueError(f"--out {args.out} is a run directory of `hprior train`, not a grid's "
+                         "results folder (a grid keeps its runs in OUT/<task>/<algo>/); "
+                         "choose another --out")
     from hprior_jax import provenance
     from hprior_jax.experiments.grid import run_grid
     from hprior_jax.loop import host

@@ -32,7 +32,11 @@ def label(argv: list[str]) -> int:
     parser.add_argument("--token", default=None,
                         help="access token (made up and printed when --host is not loopback)")
     args = parser.parse_args(argv)
+    from hprior_jax.labelling.server import ServerOptions, serve
     from hprior_jax.labelling.store import QueryFolder
+
+    # where it will serve, checked before any query is written
+    options = ServerOptions(args.host, args.port, args.token).check().resolved()
 
     if args.from_run and args.from_lab:
         parser.error("give --from-run or --from-lab, not both")
@@ -54,10 +58,7 @@ def label(argv: list[str]) -> int:
         print(f"wrote {len(ids)} queries to {args.dir}", flush=True)
         if args.build_only:
             return 0
-    from hprior_jax.labelling.server import ServerOptions, serve
-
     folder = QueryFolder(args.dir)
-    options = ServerOptions(args.host, args.port, args.token).resolved()
     from hprior_jax import dir_lock
 
     with dir_lock.DirLock(Path(args.dir)):  # one server answers into a folder

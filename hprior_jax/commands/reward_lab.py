@@ -15,12 +15,17 @@ def reward_lab(argv: list[str]) -> int:
     parser = _parser(datasets, default_rules(), rules())
     args = parser.parse_args(argv)
     from hprior_jax.lab.contrasts import Contrast
-    from hprior_jax.lab.sweep import lab_config, run_lab
+    from hprior_jax.lab.sweep import check_arguments, lab_config, run_lab
 
     try:
         contrasts = [Contrast.parse(c) for c in args.contrasts]
     except ValueError as e:
-        parser.error(f"--contrasts: {e}")
+        raise ValueError(f"--contrasts: {e}") from None
+    # every argument before the dataset (a build takes minutes) and before --out is touched
+    if args.dataset_steps < 1:
+        raise ValueError(f"--dataset-steps {args.dataset_steps}: give a positive step count")
+    check_arguments(args.task, args.preset, args.rules, args.seeds, args.budgets, args.teacher,
+                    args.prior_set, args.queries_per_round)
     from hprior_jax.setup_jax import enable_compilation_cache
 
     enable_compilation_cache()

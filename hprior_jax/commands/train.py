@@ -50,6 +50,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
 
     # before anything touches a device: with several processes the mesh spans them all
     several = not help_asked and devices.initialize_distributed()
+    labelling = None if help_asked else _ask_options(known)  # checked before anything is written
 
     if known.resume and not help_asked:
         # the flags over the run's own config: resume_config refuses what may not change
@@ -106,7 +107,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         print(f"resuming from step {step or 0} of {cfg.steps}", flush=True)
     try:
         train(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
-                 saved_capacity=saved_capacity, engine=engine, labelling=_ask_options(known),
+                 saved_capacity=saved_capacity, engine=engine, labelling=labelling,
                  interrupt=stop,
                  compile_ahead="off" if known.no_compile_ahead
                  else known.compile_ahead.replace("-", "_"))
@@ -150,6 +151,7 @@ def parse_config(default, args: list[str], **kw):
 
 
 def _train_description(algo: str) -> str:
+    from hprior_jax.config import CHANGEABLE_ON_RESUME
     from hprior_jax.envs import task_names
     from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
 
@@ -158,8 +160,9 @@ def _train_description(algo: str) -> str:
             "--preset {paper,reduced,smoke}; --teacher "
             f"{{{','.join(sorted(TEACHERS))}}} (a B-Pref teacher); --eval-budget {{paper,cpu}} "
             "(cpu: 5 evaluation episodes every 10k steps; see README); --no-progress (no progress "
-            "bar); --resume DIR continues an interrupted run, where only --steps, --eval-every, "
-            "--checkpoint-every and --num-eval-episodes may change. Ctrl-C once finishes the "
+            "bar); --resume DIR continues an interrupted run, where only "
+            f"{', '.join('--' + k.replace('_', '-') for k in CHANGEABLE_ON_RESUME)} may "
+            "change. Ctrl-C once finishes the "
             "chunk in flight and saves a checkpoint; twice stops at once. --devices N splits "
             "the seeds over N devices (default: as many as divide the seeds evenly; a run may "
             "resume on another count); several hosts: README, 'Many devices and hosts'. "
@@ -191,7 +194,7 @@ def _ask_options(known):
     default = ServerOptions()
     server = ServerOptions(known.label_host or default.host,
                            default.port if known.label_port is None else known.label_port,
-                           known.label_token)
+                           known.label_token).check("--label-host", "--label-port")
     timeout = AskOptions().timeout_s if known.label_timeout is None else known.label_timeout
     return AskOptions(server=server, timeout_s=timeout)
 

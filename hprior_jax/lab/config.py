@@ -94,8 +94,9 @@ class LabConfig:
         bad = set(self.credits) - set(CREDITS) - {OWN_PROGRAM}
         if bad:
             raise ValueError(f"unknown credit {sorted(bad)}; available: {', '.join(CREDITS)}")
-        if list(self.budgets) != sorted(set(self.budgets)) or self.budgets[0] < 1:
-            raise ValueError(f"budgets must be increasing positive label counts: {self.budgets}")
+        check_budgets(self.budgets)
+        if not self.seeds:
+            raise ValueError("give at least one seed")
         if self.needs_world_model and self.world_model is None:
             raise ValueError("a rule with attention or positional credit needs a world model")
         if self.needs_bisim and not self.reward.next_embedding_head:
@@ -127,6 +128,12 @@ class LabConfig:
                 labels += n
                 out.append((n, budget if labels == budget else None))
         return out
+
+
+def check_budgets(budgets) -> None:
+    if not budgets or list(budgets) != sorted(set(budgets)) or budgets[0] < 1:
+        raise ValueError(f"budgets must be increasing positive label counts, got "
+                         f"{list(budgets)}")
 
 
 @struct.dataclass

@@ -18,7 +18,7 @@ from hprior_jax import dir_lock, presets
 from hprior_jax.lab import resume as lab_resume
 from hprior_jax.lab import world_model_cache
 from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, UNLABELLED_SEGMENTS,
-                                   WORLD_MODEL_CREDITS, GivenLabels, LabConfig)
+                                   WORLD_MODEL_CREDITS, GivenLabels, LabConfig, check_budgets)
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
@@ -83,8 +83,72 @@ def with_settings(config, settings: list[str] | None, refused: dict[str, str] | 
                 raise ValueError(f"setting {setting!r}: {name} is true or false")
             changes[name] = text.lower() == "true"
         else:
-            changes[name] = type(current)(text)
+            try:
+                changes[name] = type(current)(text)
+            except ValueError:
+                raise ValueError(f"setting {setting!r}: {name} is a "
+                                 f"{type(current).__name__}") from None
     return dataclasses.replace(config, **changes)  # __post_init__ checks the values
+
+
+# PRIOR's two ablations are lab rules, so a lab can hold them beside PRIOR
+AS_RULES = {"exclude_own_step": "a lab rule, not a setting: --rules ... prior_no_own_step",
+            "clip_targets": "a lab rule, not a setting: --rules ... prior_clipped"}
+
+
+def check_arguments(task: str, preset: str, rule_names, seeds: int, budgets, teacher: str,
+                    prior_settings: list[str] | None = None,
+                    queries_per_round: int | None = None) -> None:
+    """The checks of `lab_config` that need no dataset, each naming its flag: `hprior
+    reward-lab` runs them before it loads or builds one (a build takes minutes)."""
+    if seeds < 1:
+        raise ValueError(f"--seeds {seeds}: give the number of seeds, at least 1")
+    if queries_per_round is not None and queries_per_round < 1:
+        raise ValueError(f"--queries-per-round {queries_per_round}: give at least 1")
+    try:
+        check_budgets(budgets)
+    except ValueError as e:
+        raise ValueError(f"--budgets {' '.join(map(str, budgets))}: {e}") from None
+    try:
+        _parsed_rules(list(rule_names or default_rules()))
+    except ValueError as e:
+        raise ValueError(f"--rules: {e}") from None
+    try:
+        _check_teacher(teacher)
+    except ValueError as e:
+        raise ValueError(f"--teacher: {e}") from None
+    if not prior_settings:
+        return
+    rl = presets.train_preset(task, registry.PROPOSED, preset)  # an unknown task: named
+    try:
+        with_settings(rl.prior, prior_settings, refused=AS_RULES)
+    except ValueError as e:
+        raise ValueError(f"--prior-set: {e}") from None
+
+
+def _parsed_rules(rule_names: list[str]) -> list[tuple[str, float | None, bool]]:
+    known = rules()
+    parsed = [parse_rule(r) for r in rule_names]
+    unknown = [r for r, *_ in parsed if r not in known]
+    if unknown:
+        raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
+    if len(set(rule_names)) < len(rule_names):
+        raise ValueError(f"a rule is named twice: {rule_names}")
+    without_term = [r for r, lam, shifted in parsed if (lam is not None or shifted)
+                    and known[r] in (*NO_PRIOR, OWN_PROGRAM)]
+    if without_term:
+        raise ValueError(f"{without_term} train no prior term: @LAMBDA or {SHIFTED} has "
+                         "nothing to change")
+    return parsed
+
+
+def _check_teacher(teacher: str) -> None:
+    if teacher not in TEACHERS:
+        raise ValueError(f"unknown teacher {teacher!r}; available: {', '.join(TEACHERS)}")
+    if TEACHERS[teacher].human:
+        raise ValueError("the lab's teacher labels as the rounds go: a person labels the "
+                         "dataset's pairs first (`hprior label --from-lab`), then "
+                         "`hprior reward-lab --labels DIR` trains on those answers")
 
 
 def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20,
@@ -98,28 +162,10 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     several world models merge into one report (`lab.report` of several results.csv)."""
     known = rules()
     rule_names = list(rule_names or default_rules())
-    parsed = [parse_rule(r) for r in rule_names]
-    unknown = [r for r, *_ in parsed if r not in known]
-    if unknown:
-        raise ValueError(f"unknown lab rule {unknown}; available: {', '.join(known)}")
-    if len(set(rule_names)) < len(rule_names):
-        raise ValueError(f"a rule is named twice: {rule_names}")
-    without_term = [r for r, lam, shifted in parsed if (lam is not None or shifted)
-                    and known[r] in (*NO_PRIOR, OWN_PROGRAM)]
-    if without_term:
-        raise ValueError(f"{without_term} train no prior term: @LAMBDA or {SHIFTED} has "
-                         "nothing to change")
-    if teacher not in TEACHERS:
-        raise ValueError(f"unknown teacher {teacher!r}; available: {', '.join(TEACHERS)}")
-    if TEACHERS[teacher].human:
-        raise ValueError("the lab's teacher labels as the rounds go: a person labels the "
-                         "dataset's pairs first (`hprior label --from-lab`), then "
-                         "`hprior reward-lab --labels DIR` trains on those answers")
+    parsed = _parsed_rules(rule_names)
+    _check_teacher(teacher)
     rl = presets.train_preset(data.task, registry.PROPOSED, preset)
-    # PRIOR's two ablations are lab rules, so a lab can hold them beside PRIOR
-    as_rules = {"exclude_own_step": "a lab rule, not a setting: --rules ... prior_no_own_step",
-                "clip_targets": "a lab rule, not a setting: --rules ... prior_clipped"}
-    p, prior = rl.pebble, with_settings(rl.prior, prior_settings, refused=as_rules)
+    p, prior = rl.pebble, with_settings(rl.prior, prior_settings, refused=AS_RULES)
     # the bisimulation rule's λ_bisim and transitions from its method's preset
     bisim = next((presets.train_preset(data.task, r, preset).bisim
                   for r, *_ in parsed if known[r] == "bisimulation"), None)

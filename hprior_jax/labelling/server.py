@@ -27,6 +27,22 @@ class ServerOptions:
             return replace(self, token=secrets.token_urlsafe(16))
         return self
 
+    def check(self, host_flag: str = "--host", port_flag: str = "--port") -> "ServerOptions":
+        """Refuses, before anything is written or served, a port out of range and an address
+        this machine cannot serve on (naming the flag)."""
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"{port_flag} {self.port}: a port is 1-65535 (0: any free one)")
+        try:
+            family = socket.getaddrinfo(self.host, None)[0][0]
+            with socket.socket(family, socket.SOCK_STREAM) as probe:
+                probe.bind((self.host, 0))  # any free port: only the address is checked
+        except (OSError, UnicodeError) as e:
+            reason = getattr(e, "strerror", None) or str(e)
+            raise ValueError(f"{host_flag} {self.host}: this machine cannot serve on it "
+                             f"({reason}); give one of its addresses, e.g. 127.0.0.1 or "
+                             "0.0.0.0 (every interface)") from None
+        return self
+
     def url(self, port: int | None = None) -> str:
         shown = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
         return (f"http://{shown}:{self.port if port is None else port}/"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from hprior_jax.checkpoint import leaves_by_name
 from hprior_jax.loop import devices
 from hprior_jax.loop.run_files import commit_extension
 from hprior_jax.loop.state import RunState
@@ -20,10 +21,24 @@ class CheckpointUnreadable(ValueError):
     """No checkpoint of a run could be restored; the message names the newest and why."""
 
 
-def save(ckpt, step: int, rs: RunState, run_dir: Path, say) -> None:
-    """A checkpoint, then a pending extension of the run's budget becomes its config (it
-    now has a checkpoint it can resume from)."""
-    ckpt.save(step, rs)
+class CheckpointMismatch(ValueError):
+    """A readable checkpoint whose arrays are not those of the state the run's configuration
+    builds (its config.json changed since): not damage, so nothing is set aside."""
+
+    def __init__(self, directory: Path, step: int, differences: list[str]):
+        self.step, self.differences = step, differences
+        more = f" (and {len(differences) - 2} more)" if len(differences) > 2 else ""
+        super().__init__(f"the checkpoint at step {step} in {directory} does not fit the "
+                         f"run's configuration ({'; '.join(differences[:2])}{more}): was "
+                         f"{Path(directory).parent / 'config.json'} edited? Put its values "
+                         "back to resume the run, or start a new run (another --out)")
+
+
+def save(ckpt, step: int, rs: RunState, run_dir: Path, say, config: dict | None = None) -> None:
+    """A checkpoint (with `config`, the configuration it was written under), then a pending
+    extension of the run's budget becomes its config (it now has a checkpoint it can resume
+    from)."""
+    ckpt.save(step, rs, metadata=None if config is None else {"config": config})
     if devices.is_primary():
         note = commit_extension(run_dir)
         if note:
@@ -46,7 +61,10 @@ def restore_latest(ckpt, like: RunState, step: int | None = None, on_unreadable=
                 if old is not None and old not in stored and name.startswith(RECORDED):
                     return None  # a field recorded since it was written: `like`'s zeros
                 return old
+            _check_fits(ckpt, like, candidate, rename)
             return ckpt.restore(like, candidate, rename=rename)
+        except CheckpointMismatch:
+            raise  # the configuration changed, not the checkpoint: an older one fits no better
         except Exception as e:  # orbax raises many kinds for a damaged checkpoint
             if on_unreadable is None or i + 1 == len(candidates):
                 raise CheckpointUnreadable(
@@ -54,6 +72,22 @@ def restore_latest(ckpt, like: RunState, step: int | None = None, on_unreadable=
                     f"restored: {first_line(e)}") from e
             on_unreadable(candidate, e)
     raise CheckpointUnreadable(f"{ckpt.directory} holds no checkpoint")
+
+
+def _check_fits(ckpt, like: RunState, step: int, rename) -> None:
+    """Raises CheckpointMismatch when the checkpoint's leaves (names and shapes, from its
+    metadata) are not those `like` asks for."""
+    stored = ckpt.stored_shapes(step)
+    wanted = {rename(name): tuple(x.shape) for name, x in leaves_by_name(like).items()}
+    wanted.pop(None, None)
+    differences = [f"{name} is {stored[name]} in the checkpoint, {shape} in this run"
+                   for name, shape in wanted.items()
+                   if name in stored and stored[name] != shape]
+    differences += [f"{name} is not in the checkpoint" for name in wanted if name not in stored]
+    differences += [f"{name} is not in this run's state" for name in stored
+                    if name not in wanted]
+    if differences:
+        raise CheckpointMismatch(ckpt.directory, step, differences)
 
 
 def legacy_checkpoint_name(name: str) -> str | None:

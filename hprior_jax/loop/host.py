@@ -6,6 +6,7 @@ only as the engine and the method name them.
 from __future__ import annotations
 
 import contextlib
+import json
 from functools import partial
 from pathlib import Path
 
@@ -182,7 +183,10 @@ class _Loop:
             raise Interrupted(self.run_dir, self.step)
 
     def _save(self) -> None:
-        checkpoints.save(self.ckpt, self.step, self.rs, self.run_dir, self.bar.write)
+        # the configuration rides with the checkpoint: an edited config.json is then named
+        # by field on resume, not mistaken for a damaged checkpoint
+        checkpoints.save(self.ckpt, self.step, self.rs, self.run_dir, self.bar.write,
+                         config=json.loads(self.cfg.to_json()))
         self.last_ckpt = self.step
 
     def _event(self, timer: WallTimer) -> None:

@@ -10,7 +10,8 @@ from pathlib import Path
 import jax
 
 from hprior_jax.checkpoint import Checkpointer
-from hprior_jax.loop.checkpoints import CheckpointUnreadable, first_line, restore_latest
+from hprior_jax.loop.checkpoints import (CheckpointMismatch, CheckpointUnreadable, first_line,
+                                        restore_latest)
 from hprior_jax.loop.state import RunState
 from hprior_jax.runs.build import build_engine
 from hprior_jax.runs.run_dir import load_run_config
@@ -63,6 +64,8 @@ def restore_run(run_dir: Path, step: int | None = None, **overrides) -> Restored
                     initial[capacity] = engine.init_seeds(list(cfg.seeds), capacity=capacity)
                 found, state = restore_latest(ckpt, initial[capacity], candidate)
                 break
+            except CheckpointMismatch:
+                raise  # config.json changed: an older checkpoint fits no better
             except Exception as e:  # a damaged checkpoint: metadata or data
                 reason = first_line(e)
                 if i + 1 == len(candidates):

@@ -1,4 +1,5 @@
-"""Run directories: create, read config.json (today's format and the first one), extend.
+"""Run directories: create one, check an --out, extend a run's budget on resume (config.json
+of today's format and the first one is read back by `config_file`).
 
 Format 1 (before methods were plug-ins) wrote every section (`pebble`, `prior`) into every
 run's config.json, chose PRIOR-NRP and RVAR by `prior.variant`, and kept the method's state
@@ -12,15 +13,39 @@ import dataclasses
 import json
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from hprior_jax.config import RunConfig, differing_fields
+from hprior_jax.config import CHANGEABLE_ON_RESUME, RunConfig, differing_fields
 from hprior_jax.loop.run_files import EXTENDING, latest_checkpoint_step, write_atomic
-from hprior_jax.methods import registry
+from hprior_jax.runs.config_file import (  # noqa: F401  (read here by the commands)
+    load_run_config, read_config, read_json)
 
 
 class RunDirError(ValueError):
     """A run directory that cannot be used; the message names the path and the fix."""
+
+
+@dataclass(frozen=True)
+class Wording:
+    """How a message names what the user gave: the command line's flags (`hprior train`) or
+    the Python API's config fields (`hprior_jax.train`)."""
+
+    python: bool = False
+
+    def field(self, name: str) -> str:
+        return f"config.{name}" if self.python else "--" + name.replace("_", "-")
+
+    @property
+    def resuming(self) -> str:
+        return "resume=True" if self.python else "--resume"
+
+    def resume(self, out: Path) -> str:
+        return ("hprior_jax.train(config, resume=True)" if self.python
+                else f"`hprior train --resume {out}`")
+
+
+COMMAND_LINE, PYTHON = Wording(), Wording(python=True)
 
 
 def run_dir_path(cfg: RunConfig) -> Path:
@@ -28,36 +53,37 @@ def run_dir_path(cfg: RunConfig) -> Path:
         f"{cfg.task}_{cfg.algo}_{time.strftime('%Y%m%d-%H%M%S')}")
 
 
-def check_out_dir(out: Path) -> Path:
+def check_out_dir(out: Path, wording: Wording = COMMAND_LINE) -> Path:
     """Refuses, without writing anything, an --out that is not empty or cannot be written."""
-    out = Path(out)
+    out, flag = Path(out), wording.field("out")
     if out.exists() and not out.is_dir():
-        raise RunDirError(f"--out {out} is a file, not a directory; choose another --out")
+        raise RunDirError(f"{flag} {out} is a file, not a directory; choose another {flag}")
     if out.is_dir() and any(out.iterdir()):
-        fix = (f"continue it with `hprior train --resume {out}` or choose another --out"
+        fix = (f"continue it with {wording.resume(out)} or choose another {flag}"
                if (out / "config.json").exists() else
-               "it is not a run directory (no config.json): choose another --out")
+               f"it is not a run directory (no config.json): choose another {flag}")
         raise RunDirError(f"output directory {out} exists and is not empty; {fix}")
     parent = next(p for p in (out, *out.absolute().parents) if p.exists())
     if not parent.is_dir():
-        raise RunDirError(f"--out {out}: {parent} is a file, so no directory can be made "
-                          "under it; choose another --out")
+        raise RunDirError(f"{flag} {out}: {parent} is a file, so no directory can be made "
+                          f"under it; choose another {flag}")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise RunDirError(f"--out {out}: no permission to write in {parent}; choose a "
+        raise RunDirError(f"{flag} {out}: no permission to write in {parent}; choose a "
                           "directory you can write to")
     return out
 
 
-def prepare_run_dir(cfg: RunConfig, run_info: dict | None = None) -> Path:
+def prepare_run_dir(cfg: RunConfig, run_info: dict | None = None,
+                    wording: Wording = COMMAND_LINE) -> Path:
     """Creates the run directory and its config.json; refuses a non-empty or unwritable one.
     `run_info` (what produced the run: `hprior_jax.provenance.run_info()`) is stored beside
     the configuration."""
-    out = check_out_dir(run_dir_path(cfg))
+    out, flag = check_out_dir(run_dir_path(cfg), wording), wording.field("out")
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_config(out, cfg, run_info)
     except OSError as e:
-        raise RunDirError(f"--out {out}: {e.strerror or e}; choose another --out") from None
+        raise RunDirError(f"{flag} {out}: {e.strerror or e}; choose another {flag}") from None
     return out
 
 
@@ -69,28 +95,11 @@ def write_config(run_dir: Path, cfg: RunConfig, run_info: dict | None) -> None:
 
 
 def run_info_of(run_dir: Path) -> dict | None:
-    return _read_json(run_dir).get("run_info")
+    return read_json(run_dir).get("run_info")
 
 
-def load_run_config(run_dir: Path) -> RunConfig:
-    return read_config(_read_json(run_dir))
-
-
-def read_config(d: dict) -> RunConfig:
-    """config.json of either format -> today's RunConfig."""
-    d = {k: v for k, v in d.items() if k != "run_info"}
-    if d.get("format", 1) == 1:
-        d = registry.from_format_1(d)
-    return RunConfig.from_dict(d)
-
-
-# what a resumed run may change: the budget and the cadences (they decide when to evaluate
-# and save, not what is learned); everything else would make a different run
-CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
-                        "keep_checkpoints", "capture_video", "video_steps")
-
-
-def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int | None]:
+def resume_config(run_dir: Path, requested: RunConfig,
+                  wording: Wording = COMMAND_LINE) -> tuple[RunConfig, int | None]:
     """The run's config with the changes `requested` may make on resume (other changes are
     refused, naming them). A change is not yet the run's: it waits in config.extending.json
     until the resumed run writes its first checkpoint (`commit_extension`), so a run stopped
@@ -100,13 +109,13 @@ def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int |
     changed = [k for k in differing_fields(old, requested) if k != "out"]
     refused = [k for k in changed if k not in CHANGEABLE_ON_RESUME]
     if refused:
-        flags = ", ".join(f"--{k.replace('_', '-')} ({_get(old, k)!r} -> {_get(requested, k)!r})"
+        flags = ", ".join(f"{wording.field(k)} ({_get(old, k)!r} -> {_get(requested, k)!r})"
                           for k in refused)
         raise ValueError(
-            f"--resume continues {run_dir} as it was configured; these cannot change: {flags}. "
-            "A resumed run may change only "
-            f"{', '.join('--' + k.replace('_', '-') for k in CHANGEABLE_ON_RESUME)}; start a "
-            "new run (another --out) for the rest")
+            f"{wording.resuming} continues {run_dir} as it was configured; these cannot "
+            f"change: {flags}. A resumed run may change only "
+            f"{', '.join(map(wording.field, CHANGEABLE_ON_RESUME))}; start a new run (another "
+            f"{wording.field('out')}) for the rest")
     if not changed:
         return old, None
     checkpoint_step = latest_checkpoint_step(run_dir)
@@ -114,8 +123,8 @@ def resume_config(run_dir: Path, requested: RunConfig) -> tuple[RunConfig, int |
     if new.steps < old.steps and not old.replay_capacity:
         new = dataclasses.replace(new, replay_capacity=old.capacity)  # keep the buffer's size
     if checkpoint_step is not None and new.steps < checkpoint_step:
-        raise ValueError(f"--steps {new.steps} is below step {checkpoint_step} of the run's "
-                         "latest checkpoint")
+        raise ValueError(f"{wording.field('steps')} {new.steps} is below step "
+                         f"{checkpoint_step} of the run's latest checkpoint")
     new = dataclasses.replace(new, out=old.out)
     pending = json.loads(new.to_json())
     pending["run_info"] = run_info_of(run_dir)
@@ -128,11 +137,3 @@ def _get(cfg, dotted: str):
     for part in dotted.split("."):
         cfg = getattr(cfg, part)
     return cfg
-
-
-def _read_json(run_dir: Path) -> dict:
-    path = Path(run_dir) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} not found: {run_dir} is not a run directory "
-                                "written by `hprior train`")
-    return json.loads(path.read_text())
