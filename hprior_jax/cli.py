@@ -16,12 +16,18 @@ from __future__ import annotations
 
 import difflib
 import os
+import signal
 import sys
 
-from tasks import _xla_flags  # noqa: F401  (before anything imports jax)
+import hprior_jax
 
-from hprior_jax.commands import grid, label, reward_lab, train, trained_runs
-from hprior_jax.methods import registry
+if __name__ == "__main__":  # python -m hprior_jax.cli: as the `hprior` script does
+    hprior_jax._quiet_ctrl_c_while_importing()
+
+from tasks import _xla_flags  # noqa: F401,E402  (before anything imports jax)
+
+from hprior_jax.commands import grid, label, reward_lab, train, trained_runs  # noqa: E402
+from hprior_jax.methods import registry  # noqa: E402
 
 USAGE = """usage: hprior COMMAND [ARGS]
 
@@ -78,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"unknown command {command!r}{hint}\n\n{USAGE}", file=sys.stderr)
         return 2
     try:
+        if signal.getsignal(signal.SIGINT) is hprior_jax._quit_on_ctrl_c:
+            # the command's own: KeyboardInterrupt below, `hprior train`'s StopRequest
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         return commands[command](rest)
     except BrokenPipeError:  # the reader went away (`hprior train --help | head -1`)
         devnull = os.open(os.devnull, os.O_WRONLY)

@@ -254,3 +254,51 @@ def test_a_checkpoint_without_a_render_field_recorded_since_restores_with_zeros(
     assert step == 5 and np.array_equal(state.replay.obs, np.arange(3.0))
     physics = state.replay.physics
     assert np.all(physics["qpos"] == 1) and np.all(physics["placement"] == 0)
+
+
+def _run_as_hprior(tmp_path: Path, body: str, *args: str) -> subprocess.CompletedProcess:
+    """A script named `hprior` (what the console script is called) running `body`."""
+    import os
+
+    script = tmp_path / "bin" / "hprior"
+    script.parent.mkdir(exist_ok=True)
+    script.write_text("import os, signal, sys\n" + body)
+    return subprocess.run([sys.executable, str(script), *args], cwd=ROOT, text=True,
+                          capture_output=True, timeout=240,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def test_ctrl_c_while_the_command_imports_is_one_line_and_130(tmp_path):
+    body = ("import hprior_jax  # the console script's first import\n"
+            "os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the rest imports\n"
+            "from hprior_jax.cli import main\n"
+            "sys.exit(main())\n")
+    done = _run_as_hprior(tmp_path, body, "train", "--out", str(tmp_path / "run"))
+    assert done.returncode == 130 and done.stderr == "interrupted\n", done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("out_existed", [False, True])
+def test_ctrl_c_before_the_first_chunk_leaves_no_half_made_run_directory(out_existed,
+                                                                         tmp_path):
+    """Ctrl-C once the engine is built, before the run directory is made: the command ends
+    130 as if it had never run (an --out that existed empty stays empty), so the same
+    command line can be typed again."""
+    out = tmp_path / "run"
+    if out_existed:
+        out.mkdir()
+    body = ("from tests.toy_task import ensure_registered; ensure_registered()\n"
+            "from hprior_jax.cli import main\n"
+            "from hprior_jax.runs import build\n"
+            "built = build.build_engine\n"
+            "def build_engine(*a, **k):\n"
+            "    engine = built(*a, **k)\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    return engine\n"
+            "build.build_engine = build_engine\n"
+            "sys.exit(main())\n")
+    done = _run_as_hprior(tmp_path, body, "train", *TOY, "--steps", "40", "--out", str(out),
+                          "--no-progress")
+    assert done.returncode == 130 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
+    assert (list(out.iterdir()) == []) if out_existed else not out.exists()

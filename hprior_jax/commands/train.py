@@ -72,6 +72,7 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
             default = presets.with_eval_budget(default, known.eval_budget)
         requested = parse_config(default, _tyro_args(argv))
         cfg, saved_capacity = run_dirs.resume_config(run_dir, requested)
+        made = False
         enable_compilation_cache()
         engine = build_engine(cfg, known.devices)
     else:
@@ -92,15 +93,14 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         # every configuration check runs before anything is written
         engine = build_engine(cfg, known.devices)
         devices.barrier("run directory checked")
+        made = not Path(cfg.out).exists()
         if devices.is_primary():
             run_dirs.prepare_run_dir(cfg, provenance.run_info(["train", *argv]))
             locks.append(dir_lock.hold(Path(cfg.out)))
         devices.barrier("run directory made")
-        run_dir = Path(cfg.out)
-        saved_capacity = None
+        run_dir, saved_capacity = Path(cfg.out), None
     if stop.requested:  # during the checks and compiles above: nothing was trained
-        print("interrupted", file=sys.stderr)
-        return 130
+        return _interrupted_before_training(None if known.resume else run_dir, made)
     print(f"run directory: {run_dir}", flush=True)
     if known.resume:
         step = run_files.latest_checkpoint_step(run_dir)
@@ -117,6 +117,18 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
         return 130
     _print_results(run_dir)
     return 0
+
+
+def _interrupted_before_training(fresh: Path | None, made: bool) -> int:
+    """Ctrl-C before the first chunk: a fresh run's directory is removed (or emptied, if
+    --out existed), so the command line can be typed again; a resumed run is untouched."""
+    from hprior_jax.loop import devices
+    from hprior_jax.runs import run_dir as run_dirs
+
+    if fresh is not None and devices.is_primary():
+        run_dirs.discard_unstarted(fresh, made)
+    print("interrupted", file=sys.stderr)
+    return 130
 
 
 def _print_results(run_dir: Path) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +86,17 @@ def prepare_run_dir(cfg: RunConfig, run_info: dict | None = None,
     except OSError as e:
         raise RunDirError(f"{flag} {out}: {e.strerror or e}; choose another {flag}") from None
     return out
+
+
+def discard_unstarted(run_dir: Path, made: bool) -> None:
+    """Undoes prepare_run_dir for a run stopped before it trained anything (Ctrl-C while it
+    was checked or compiled): the directory as it was found, gone if prepare_run_dir made it,
+    else empty again, so the command can be run again as it was typed."""
+    if not made:
+        for p in Path(run_dir).iterdir():  # check_out_dir found it empty: all of it is ours
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    else:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def write_config(run_dir: Path, cfg: RunConfig, run_info: dict | None) -> None:
