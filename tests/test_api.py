@@ -143,7 +143,8 @@ def test_a_policy_or_action_of_the_wrong_shape_is_named():
 
 @pytest.mark.slow  # cheetah's programs: ~100 s on 2 cores
 def test_capture_video_writes_each_seeds_episode_at_every_kth_evaluation(tmp_path):
-    """On cheetah (the toy task has no scene): every 2nd evaluation, one short MP4 a seed."""
+    """On cheetah (the toy task has no scene): every 2nd evaluation, one short MP4 a seed;
+    `hprior eval --video` of the same step writes its own files beside them."""
     import imageio.v3 as iio
 
     out = tmp_path / "run"
@@ -157,3 +158,9 @@ def test_capture_video_writes_each_seeds_episode_at_every_kth_evaluation(tmp_pat
     assert videos == ["step20_seed1.mp4", "step20_seed2.mp4",
                       "step60_seed1.mp4", "step60_seed2.mp4"]
     assert iio.imread(out / "videos" / videos[0]).shape[0] == 11  # the start and 10 steps
+    captured = {p.name: p.read_bytes() for p in (out / "videos").iterdir()}
+    # hprior eval --video of the same step: files of its own beside training's, none replaced
+    assert cli.main(["eval", "--run", str(out), "--episodes", "1", "--video"]) == 0
+    assert sorted(p.name for p in (out / "videos").iterdir()) == sorted(
+        [*videos, "eval_step60_seed1.mp4", "eval_step60_seed2.mp4"])
+    assert all((out / "videos" / name).read_bytes() == data for name, data in captured.items())

@@ -10,7 +10,8 @@ def evaluate(argv: list[str]) -> int:
         description="Evaluate the policy of a run's checkpoint on fresh episodes, per seed: "
                     "true return (mean and std) and, for MetaWorld, success rate. Writes "
                     "RUN/eval_step<N>_<K>ep.csv; --video renders one episode per seed to "
-                    "RUN/videos/ (needs OSMesa: apt-get install libosmesa6).")
+                    "RUN/videos/eval_step<N>_seed<S>.mp4 (needs OSMesa: apt-get install "
+                    "libosmesa6).")
     parser.add_argument("--run", required=True, help="a run directory of `hprior train`")
     parser.add_argument("--step", type=int, default=None,
                         help="which checkpoint (default: the newest readable one; a run keeps its "

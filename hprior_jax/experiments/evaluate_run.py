@@ -15,7 +15,8 @@ from hprior_jax.runs.restore import restore_run
 def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
                  video: bool = False) -> tuple[list[dict], list[Path]]:
     """Rows {seed, step, episodes, true_return, true_return_std, success} (success only
-    where the task defines it), written to RUN/eval_step<N>_<K>ep.csv, and the video paths.
+    where the task defines it), written to RUN/eval_step<N>_<K>ep.csv, and the video paths
+    (RUN/videos/eval_step<N>_seed<S>.mp4).
 
     The episodes use the evaluation keys of the run at that step, so with the run's own
     episode count they are the episodes of its eval.csv row at that step."""
@@ -46,5 +47,7 @@ def evaluate_run(run_dir: Path, step: int | None = None, episodes: int = 10,
 
 
 def _video(engine, actor_params, seed: int, step: int, run_dir: Path) -> Path:
+    """RUN/videos/eval_step<N>_seed<S>.mp4: a name of its own, beside (never over) the
+    step<N>_seed<S>.mp4 that training's --capture-video writes."""
     return episode_video(engine, actor_params, seed, step,
-                         run_dir / "videos" / f"step{step}_seed{seed}.mp4")
+                         run_dir / "videos" / f"eval_step{step}_seed{seed}.mp4")
