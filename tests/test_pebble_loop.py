@@ -190,8 +190,8 @@ def test_background_compiles_start_when_asked(tmp_path, when):
     engine = build_engine(cfg)
     compiled_then = []
     queue = engine.compile_run_ahead
-    engine.compile_run_ahead = lambda rs, step: (compiled_then.append(set(engine._compiled)),
-                                                 queue(rs, step))
+    engine.compile_run_ahead = lambda *args: (compiled_then.append(set(engine._compiled)),
+                                              queue(*args))
     train(cfg, prepare_run_dir(cfg), progress=False, engine=engine, compile_ahead=when)
     first = {"after_first": {"chunk/20"}, "first_phase_apart": {"chunk/20/random"},
              "at_start": set()}[when]
@@ -203,3 +203,33 @@ def test_background_compiles_start_when_asked(tmp_path, when):
     assert "eval" in engine.ahead_seconds
     if when == "first_phase_apart":  # the full program came from the background
         assert "chunk/20" in engine.ahead_seconds
+
+
+def test_the_episode_recorder_compiles_in_the_background_in_a_run_that_records(tmp_path,
+                                                                               monkeypatch):
+    """--capture-video: the first clip's episode program comes from the background queue,
+    as evaluation's does, and records the episodes the main thread's own compile records."""
+    from hprior_jax.loop.engine import eval_key
+    from hprior_jax.loop.episodes import episode_states
+
+    recorded = {}
+
+    def record(engine, actor, seed, step, path, max_steps=None):  # the toy has no scene
+        if "episode_states/deterministic/1" in engine._pending:  # queued: its turn may not
+            engine._pending["episode_states/deterministic/1"].result()  # have come yet
+        recorded.setdefault(engine, []).append(
+            episode_states(engine, actor, eval_key(seed, step)[None]))
+        return path
+
+    monkeypatch.setattr(host, "episode_video", record)
+    engines = []
+    for ahead in ("after_first", "off"):
+        cfg = _cfg(tmp_path, ahead, seeds=(7, 8), steps=60, eval_every=60, capture_video=1)
+        engines.append(build_engine(cfg))
+        train(cfg, prepare_run_dir(cfg), progress=False, engine=engines[-1],
+              compile_ahead=ahead)
+    assert "episode_states/deterministic/1" in engines[0].ahead_seconds
+    ahead, inline = (recorded[e] for e in engines)
+    assert len(ahead) == len(inline) == 2  # 1 evaluation, 2 seeds
+    for a, b in zip(ahead, inline):
+        jax.tree.map(np.testing.assert_array_equal, a, b)

@@ -226,11 +226,13 @@ class Engine(ProgramCache):
             rs = jax.eval_shape(self._init_program(None), seed_keys, env)
         self.compiled_chunk(rs, step, self.chunk_plan(step)[1])
 
-    def compile_run_ahead(self, rs: RunState, step: int) -> None:
+    def compile_run_ahead(self, rs: RunState, step: int, with_eval=()) -> None:
         """Queues the background compile of every program the rest of the run will ask for
         after its first chunk, in the order it will ask for them (the host's chunk plan,
         evaluations and events from `step`): chunk programs, evaluation, the method's event
-        programs (all of them at its first event, in their order)."""
+        programs (all of them at its first event, in their order). `with_eval`: (name,
+        program, argument shapes) of programs the host runs at evaluations (the episode
+        recorder), queued right after evaluation's."""
         cfg, events, order, at = self.cfg, set(self.event_steps()), [], step
         programs = None
         while at < cfg.steps:
@@ -248,6 +250,8 @@ class Engine(ProgramCache):
                 continue  # the main thread's: compiled before or after this call
             if name == "eval":
                 self.compile_ahead(name, *self._eval_program(rs, cfg.seeds, step))
+                for other, fn, args in with_eval:
+                    self.compile_ahead(other, fn, *args)
             elif name in (programs or {}):
                 self.compile_ahead(name, programs[name][0], *programs[name][1])
             else:

@@ -16,6 +16,23 @@ def episode_states(engine: Engine, actor_params, keys: jax.Array,
                    deterministic: bool = True) -> dict[str, np.ndarray]:
     """Whole episodes' physics states [N, T + 1, ...] (the first after reset), one per key
     in `keys` [N, 2], with the deterministic (tanh of the mean) or the sampling policy."""
+    name, fn = _program(engine, len(keys), deterministic)
+    return jax.device_get(engine.compile(name, fn, actor_params, keys)(actor_params, keys))
+
+
+def recorder_program(engine: Engine, actors) -> tuple[str, object, tuple]:
+    """(name, program, argument shapes) of what `episode_video` runs (one seed's episode),
+    for the background compile queue (`Engine.compile_run_ahead`), so a run's first
+    `--capture-video` clip does not wait for it; `actors`: the run's actor parameters, with
+    their seed axis."""
+    one_seed = jax.tree.map(lambda x: jax.ShapeDtypeStruct(np.shape(x)[1:], x.dtype), actors)
+    keys = jax.ShapeDtypeStruct((1, 2), np.uint32)  # eval_key(seed, step)[None]
+    name, fn = _program(engine, 1)
+    return name, fn, (one_seed, keys)
+
+
+def _program(engine: Engine, episodes: int, deterministic: bool = True):
+    """-> (its name, the jitted program of `episodes` whole episodes, one per key)."""
     env = engine.env  # one env, with the run's task options
 
     def snapshot(state):
@@ -35,8 +52,7 @@ def episode_states(engine: Engine, actor_params, keys: jax.Array,
     # at the run's XLA level: another level rounds differently and drifts from its episodes
     fn = jax.jit(jax.vmap(one, in_axes=(None, 0)),
                  compiler_options=engine.compiler_options or None)
-    name = f"episode_states/{'deterministic' if deterministic else 'sampled'}/{len(keys)}"
-    return jax.device_get(engine.compile(name, fn, actor_params, keys)(actor_params, keys))
+    return f"episode_states/{'deterministic' if deterministic else 'sampled'}/{episodes}", fn
 
 
 def episode_video(engine: Engine, actor_params, seed: int, step: int, path: Path,

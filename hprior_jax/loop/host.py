@@ -18,7 +18,7 @@ from hprior_jax.checkpoint import Checkpointer
 from hprior_jax.labelling.teacher import AskOptions, HumanTeacher, LabellingStopped
 from hprior_jax.loop import checkpoints, devices
 from hprior_jax.loop.engine import Engine
-from hprior_jax.loop.episodes import episode_video
+from hprior_jax.loop.episodes import episode_video, recorder_program
 from hprior_jax.loop.progress import ProgressBar, WallTimer, process_age
 from hprior_jax.loop.state import RunState
 from hprior_jax.loop.stopping import Interrupted, StopRequest, TrainingDiverged
@@ -125,7 +125,7 @@ class _Loop:
         self.events = set(engine.event_steps())
         engine.person = self._person(labelling) if self.primary else None
         if self.ahead == "at_start":
-            engine.compile_run_ahead(self.rs, self.step)
+            self._compile_run_ahead(self.step)
 
     def _restore(self, rs: RunState) -> RunState:
         broken = []
@@ -211,7 +211,7 @@ class _Loop:
             program = engine.compiled_chunk(self.rs, step, length)
             first_step = process_age() if self.chunks == 0 else None
             if self.chunks == 0 and self.ahead in ("after_first", "first_phase_apart"):
-                engine.compile_run_ahead(self.rs, step)  # before the chunk: it donates rs
+                self._compile_run_ahead(step)  # before the chunk: it donates rs
             starts = engine.episode_starts(self.rs, step)
             self.rs, metrics = program(self.rs, np.int32(step), starts)
             metrics = devices.fetch(metrics)
@@ -245,6 +245,13 @@ class _Loop:
             self.told_to_stop = bool(self.on_evaluation(
                 self.step, np.mean(returns, axis=1),
                 np.mean(successes, axis=1) if self.has_success else None))
+
+    def _compile_run_ahead(self, step: int) -> None:
+        """The rest of the run's programs in the background, with the episode recorder's
+        beside evaluation's where this process records videos."""
+        videos = self.cfg.capture_video and self.primary
+        self.engine.compile_run_ahead(
+            self.rs, step, [recorder_program(self.engine, self.rs.sac.actor)] if videos else [])
 
     def _videos(self) -> None:
         """RUN/videos/step<N>_seed<S>.mp4 of each seed's first evaluation episode."""
