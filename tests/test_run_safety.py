@@ -129,10 +129,27 @@ def test_a_damaged_newest_checkpoint_is_skipped_by_eval_and_resume(base, tmp_pat
     assert "at step 40" in out.out and "step 80 cannot be restored" in out.err
     assert out.err.count("\n") == 1 and "Traceback" not in out.err
     assert _train("--resume", str(run)) == 0  # from step 40 back to 80
-    err = capsys.readouterr().err
-    assert "moved to" in err and (run / "broken_checkpoints" / "80").exists()
+    out = capsys.readouterr()
+    # one short line, naming the step it resumes from, before the run says it resumes there
+    said = [line for line in out.err.splitlines() if "cannot be restored" in line]
+    assert len(said) == 1 and said[0].endswith(
+        f"; moved to {run / 'broken_checkpoints' / '80'}, resuming from step 40"), said
+    assert len(said[0]) - len(str(run)) < 200, said
+    assert "resuming from step 40 of 80" in out.out and "step 80 of" not in out.out
+    assert (run / "broken_checkpoints" / "80").exists()
     assert _rows(run / "eval.csv") == _rows(base / "eval.csv")
     _same_state(run, base)
+
+
+def test_an_unreadable_checkpoints_reason_is_one_short_line():
+    """orbax and TensorStore errors carry object reprs and bracketed specs: not in a line."""
+    error = ValueError("NOT_FOUND: Error opening \"zarr3\" driver: "
+                       "<tensorstore_cc.KvStore object at 0x7f3a2c1b9e70> " + "x" * 300
+                       + " [source locations='tensorstore/driver/zarr3/driver.cc:571']"
+                       "\n[tensorstore_spec='{...}']")
+    line = checkpoints.first_line(error)
+    assert line.startswith("ValueError: NOT_FOUND: Error opening")
+    assert len(line) <= 100 and "0x7f" not in line and "source locations" not in line
 
 
 def test_keep_checkpoints_zero_keeps_every_one(tmp_path):

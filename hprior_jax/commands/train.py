@@ -102,9 +102,6 @@ def _train_run(argv, known, rest, help_asked, stop, locks: list) -> int:
     if stop.requested:  # during the checks and compiles above: nothing was trained
         return _interrupted_before_training(None if known.resume else run_dir, made)
     print(f"run directory: {run_dir}", flush=True)
-    if known.resume:
-        step = run_files.latest_checkpoint_step(run_dir)
-        print(f"resuming from step {step or 0} of {cfg.steps}", flush=True)
     try:
         train(cfg, run_dir, resume=bool(known.resume), progress=not known.no_progress,
                  saved_capacity=saved_capacity, engine=engine, labelling=labelling,

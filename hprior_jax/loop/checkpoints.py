@@ -3,7 +3,7 @@ aside, and the leaf names of the first checkpoint format (before methods were pl
 method's state was kept under `extra`)."""
 from __future__ import annotations
 
-import sys
+import re
 from pathlib import Path
 
 from hprior_jax.checkpoint import leaves_by_name
@@ -99,14 +99,19 @@ def legacy_checkpoint_name(name: str) -> str | None:
     return name.replace(".method.ext.", ".extra.").replace(".method.", ".extra.")
 
 
-def first_line(error: BaseException) -> str:
-    text = str(error).strip().splitlines()
-    return f"{type(error).__name__}: {text[0] if text else ''}"[:300]
+def first_line(error: BaseException, limit: int = 100) -> str:
+    """`Type: message` of `error`, short: its first line without the object reprs and the
+    bracketed source locations and specs that orbax and TensorStore add."""
+    text = (str(error).strip().splitlines() or [""])[0]
+    text = re.sub(r"<[^<>]* at 0x[0-9a-fA-F]+>", "an object", text)
+    text = re.sub(r"\s*\[[a-z_ ]+=.*$", "", text).strip()
+    text = f"{type(error).__name__}: {text}" if text else type(error).__name__
+    return text if len(text) <= limit else text[:limit - 3].rstrip() + "..."
 
 
-def set_aside(run_dir: Path, step: int, error: BaseException) -> Path:
+def set_aside(run_dir: Path, step: int) -> Path:
     """Moves the unreadable checkpoint of `step` to RUN/broken_checkpoints/ (kept for a
-    post-mortem, out of the way of the next save at that step) and says so in one line."""
+    post-mortem, out of the way of the next save at that step)."""
     src = Path(run_dir) / "checkpoints" / str(step)
     dest = Path(run_dir) / "broken_checkpoints" / str(step)
     n = 1
@@ -114,6 +119,10 @@ def set_aside(run_dir: Path, step: int, error: BaseException) -> Path:
         dest, n = Path(run_dir) / "broken_checkpoints" / f"{step}.{n}", n + 1
     dest.parent.mkdir(exist_ok=True)
     src.rename(dest)
-    print(f"the checkpoint at step {step} cannot be restored ({first_line(error)}); moved "
-          f"to {dest}, resuming from the newest readable one", file=sys.stderr, flush=True)
     return dest
+
+
+def set_aside_line(step: int, error: BaseException, dest: Path, resumed: int) -> str:
+    """What a resume says of a checkpoint it set aside, once it has restored an older one."""
+    return (f"the checkpoint at step {step} cannot be restored ({first_line(error)}); moved "
+            f"to {dest}, resuming from step {resumed}")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import sys
 from functools import partial
 from pathlib import Path
 
@@ -107,7 +108,7 @@ class _Loop:
         rs = engine.init_seeds(self.seeds, capacity=capacity)
         # the first states, the first chunk's program: counted with the first chunk
         self.start_compile_s = sum(engine.compile_seconds.values())
-        if resume and self.ckpt.latest_step() is not None:
+        if resume:
             rs = self._restore(rs)
         if rs.replay.capacity != self.cfg.capacity:
             rs = self._grow_replay(rs)
@@ -128,13 +129,20 @@ class _Loop:
             self._compile_run_ahead(self.step)
 
     def _restore(self, rs: RunState) -> RunState:
+        """The newest checkpoint that restores (none yet: the initial `rs`, step 0)."""
         broken = []
-        self.step, rs = checkpoints.restore_latest(
-            self.ckpt, rs, on_unreadable=lambda bad, error: broken.append(
-                checkpoints.set_aside(self.run_dir, bad, error)))
+        if self.ckpt.latest_step() is not None:
+            self.step, rs = checkpoints.restore_latest(
+                self.ckpt, rs, on_unreadable=lambda bad, error: broken.append(
+                    (bad, error, checkpoints.set_aside(self.run_dir, bad))))
         if broken:  # the manager lists the steps it found when it was opened
             self.ckpt.close()
             self.ckpt = Checkpointer(self.run_dir / "checkpoints", max_to_keep=self.keep)
+        if self.primary:  # said once the step it resumes from is known
+            for bad, error, dest in broken:
+                print(checkpoints.set_aside_line(bad, error, dest, self.step), file=sys.stderr,
+                      flush=True)
+            print(f"resuming from step {self.step} of {self.cfg.steps}", flush=True)
         return rs
 
     def _grow_replay(self, rs: RunState) -> RunState:
