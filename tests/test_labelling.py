@@ -91,8 +91,16 @@ def test_answers_persist_are_idempotent_undo_and_survive_a_restart(folder):
      "choose one of left, right, equal, skip"),
     ("post", "/api/answer", {"id": "r1-q0000", "answer": "left", "labeller": "<script>"}, 400,
      "labeller"),
-    ("post", "/api/answer", {"id": "r1-q0000"}, 400, "malformed request: check answer"),
-    ("post", "/api/answer", "not json", 400, "malformed request"),
+    ("post", "/api/answer", {"id": "r1-q0000"}, 400,
+     "malformed request: the field 'answer' is missing; the field 'labeller' is missing; "
+     'send a JSON object {"id": "r1-q0000", "answer": "left"'),
+    ("post", "/api/answer", "not json", 400,
+     "malformed request: the body is not JSON (at character 1); send a JSON object"),
+    ("post", "/api/undo", '["ada"]', 400, "malformed request: the body is not a JSON object"),
+    ("post", "/api/undo", {"labeller": 3}, 400,
+     "malformed request: the field 'labeller': input should be a valid string; send a JSON"),
+    ("post", "/api/answer", {"id": "r1-q0000", "answer": "left", "labeller": "a" * 5000}, 400,
+     "labeller 'aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa'... (5000 characters): give a name"),
     ("get", "/api/clip/r1-q0000/3", None, 400, "segments 1 and 2"),
     ("get", "/api/clip/..%2F..%2Fqueries/1", None, 404, "no such page or API"),
     ("get", "/api/clip/r1-q0000.npz/1", None, 400, "bad query id"),
@@ -100,9 +108,11 @@ def test_answers_persist_are_idempotent_undo_and_survive_a_restart(folder):
 ])
 def test_bad_requests_get_a_4xx_and_write_nothing(folder, method, url, body, status, says):
     client = _client(folder)
-    kw = {"content": body} if isinstance(body, str) else {"json": body}
+    kw = ({"content": body, "headers": {"content-type": "application/json"}}
+          if isinstance(body, str) else {"json": body})
     r = getattr(client, method)(url, **({} if body is None else kw))
     assert r.status_code == status and says in r.json()["error"], r.text
+    assert len(r.json()["error"]) < 300, r.text  # nothing a request sent is echoed whole
     assert not (folder.dir / "answers.jsonl").exists()
     assert not any((folder.dir / "clips").glob("*")) if (folder.dir / "clips").exists() else True
 

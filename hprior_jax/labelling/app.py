@@ -54,8 +54,10 @@ def make_app(folder: QueryFolder, token: str | None = None):
 
     @app.exception_handler(RequestValidationError)
     async def bad_body(request: Request, e: RequestValidationError):
-        fields = ", ".join(".".join(map(str, err["loc"][1:])) or "body" for err in e.errors())
-        return JSONResponse({"error": f"malformed request: check {fields}"}, status_code=400)
+        problems = "; ".join(dict.fromkeys(_problem(err) for err in e.errors()))
+        send = BODIES.get(request.url.path)
+        return JSONResponse({"error": f"malformed request: {problems}"
+                                      + (f"; send {send}" if send else "")}, status_code=400)
 
     @app.get("/", response_class=HTMLResponse)
     def page():
@@ -86,3 +88,21 @@ def make_app(folder: QueryFolder, token: str | None = None):
         return {"undone": qid, "progress": folder.progress()}
 
     return app
+
+
+# what each POST takes, as its malformed-request message says
+BODIES = {"/api/answer": 'a JSON object {"id": "r1-q0000", "answer": "left" (or right, equal, '
+                         'skip), "labeller": "your name"}',
+          "/api/undo": 'a JSON object {"labeller": "your name"}'}
+
+
+def _problem(err: dict) -> str:
+    """One of pydantic's validation errors in words (its `loc` is ("body", field...))."""
+    where = ".".join(map(str, err["loc"][1:]))
+    if err["type"] == "json_invalid":  # loc: the offset where parsing failed
+        at = err["loc"][-1] if isinstance(err["loc"][-1], int) else None
+        return "the body is not JSON" + (f" (at character {at + 1})" if at is not None else "")
+    if err["type"] == "missing":
+        return f"the field {where!r} is missing" if where else "the body is missing"
+    return (f"the field {where!r}: {err['msg'].lower()}" if where
+            else "the body is not a JSON object")

@@ -198,6 +198,10 @@ class QueryFolder:
 
 
 def _labeller(name) -> str:
-    if not isinstance(name, str) or not re.fullmatch(r"[\w .@-]{1,64}", name):
-        raise LabelError(f"labeller {name!r}: give a name of 1-64 letters, digits, ' .@-_'")
+    if not isinstance(name, str):
+        raise LabelError(f"the labeller is a {type(name).__name__}: give a name of 1-64 "
+                         "letters, digits, ' .@-_'")
+    if not re.fullmatch(r"[\w .@-]{1,64}", name):
+        shown = repr(name) if len(name) <= 40 else f"{name[:40]!r}... ({len(name)} characters)"
+        raise LabelError(f"labeller {shown}: give a name of 1-64 letters, digits, ' .@-_'")
     return name
