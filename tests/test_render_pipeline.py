@@ -5,9 +5,14 @@ drawn from (the engine's recorded physics), and the episode recorder (evaluation
 physics put it: the object's pixels (segmentation) are compared with a frame posed directly
 from the environment's own joints and placement (`info["placement"]`, one env, C MuJoCo),
 not through `Task.render_state`."""
+import copy
+
 import jax
+import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
 
 import tasks
 from hprior_jax import make_env, presets
@@ -18,14 +23,47 @@ from tasks.render_scene import PLACEMENT, render_scene
 
 W, H = 320, 240  # the size a person is shown
 METAWORLD = [n for n in tasks.names() if tasks.info(n).domain == "metaworld"]
-# Env.render covers `render_states` on every task in the fast suite; the recorder (a whole
-# episode's scan) and the engine's recorded physics compile a program of their own per task:
-# one task each in the fast suite, the others under -m slow
+# The fast suite checks `render_states` on every task without compiling a step (MJX data put
+# from C MuJoCo) and `Env.render` on one; each path's own program (Env.render's reset, the
+# recorder's episode scan, the engine's recorded physics) on every task runs under -m slow
 FAST = "drawer_open"
 
 
 def _one_fast(names):
     return [pytest.param(n, marks=() if n == FAST else pytest.mark.slow) for n in names]
+
+
+def _posed(task, placement_shift) -> mujoco.MjData:
+    """C MuJoCo data of `task` at rest (the settled hand), its placed body moved by
+    `placement_shift` (metaworld's placement is the body's position in the model)."""
+    m = copy.copy(task.mj_model)
+    if task._placed_body is not None:
+        m.body_pos[task._placed_body] += placement_shift
+    d = mujoco.MjData(m)
+    d.qpos[:] = task._settled["qpos"]
+    d.mocap_pos[task._hand_mocap] = task.scene.hand_init_pos
+    mujoco.mj_kinematics(m, d)
+    return d
+
+
+@pytest.mark.parametrize("name", METAWORLD)
+def test_render_states_reads_each_envs_own_row(name):
+    """A batch of two envs with two placements: row i of `Task.render_states` is env i's own
+    state, and its frame shows the object where env i's physics put it."""
+    task = tasks.make(name)
+    shifts = [np.zeros(3), np.array([0.05, 0.0, 0.0])]
+    posed = [_posed(task, s) for s in shifts]
+    batch = jax.tree.map(lambda *x: jnp.stack(x), *[mjx.put_data(task.mj_model, d)
+                                                    for d in posed])
+    rows = {k: np.asarray(v) for k, v in task.render_states(batch).items()}
+    for i, d in enumerate(posed):
+        truth = {k: np.asarray(getattr(d, k))[None] for k in ("qpos", "qvel", "mocap_pos",
+                                                              "mocap_quat")}
+        if task._placed_body is not None:
+            truth[PLACEMENT] = np.asarray(d.xpos[task._placed_body])[None]
+            np.testing.assert_allclose(rows[PLACEMENT][i], truth[PLACEMENT][0], atol=1e-6)
+        _assert_object_where_physics_put_it(task, {k: v[i][None] for k, v in rows.items()},
+                                            truth, f"render_states row {i}")
 
 
 def _object_mask(task, states) -> np.ndarray:
@@ -55,12 +93,11 @@ def _assert_object_where_physics_put_it(task, shown: dict, truth: dict, where: s
                             f"true position's by {iou:.2f} (IoU)")
 
 
-@pytest.mark.parametrize("name", METAWORLD)
+@pytest.mark.parametrize("name", _one_fast(METAWORLD))
 def test_env_render_shows_each_envs_object(name):
     """`Env.render(i)` of a batch of 2 is the frame posed from env i's own state."""
     env = make_env(name, num_envs=2, seed=1)
     env.reset()
-    env.step(np.zeros((2, env.env.action_size), np.float32))
     task, state = env.task, env.state.task
     if PLACEMENT in state.info:  # the two envs hold different placements: the row matters
         assert not np.allclose(state.info[PLACEMENT][0], state.info[PLACEMENT][1])
@@ -77,7 +114,8 @@ def test_env_render_shows_each_envs_object(name):
             truth, f"render_states row {i}")
 
 
-@pytest.mark.parametrize("name", _one_fast(METAWORLD))
+@pytest.mark.slow
+@pytest.mark.parametrize("name", METAWORLD)
 def test_recorded_physics_for_a_persons_clips_shows_the_object(name):
     """The engine records `recorded_physics` of each seed's env into the replay buffer; the
     labelling page's clips are rendered from those rows."""
@@ -90,7 +128,8 @@ def test_recorded_physics_for_a_persons_clips_shows_the_object(name):
     _assert_object_where_physics_put_it(engine.task, shown, truth, "recorded physics")
 
 
-@pytest.mark.parametrize("name", _one_fast(METAWORLD))
+@pytest.mark.slow
+@pytest.mark.parametrize("name", METAWORLD)
 def test_episode_recorder_shows_the_object(name):
     """Evaluation videos and `--capture-video` render `episode_states`: the first and the
     last frame of an episode show the object where the episode's own reset placed it."""
