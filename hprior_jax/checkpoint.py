@@ -16,19 +16,25 @@ import jax
 import orbax.checkpoint as ocp
 
 
-class _NoMissingMetadataWarning(logging.Filter):
-    """Orbax warns through absl, on every read of a checkpoint's leaf metadata, that the
-    item's folder has no _CHECKPOINT_METADATA (the manager keeps it one level up), and on
-    reading a step's metadata that it was not told how to restore the item (it was not
-    asked to): lines that say nothing to a user."""
+class _OrbaxNoise(logging.Filter):
+    """Lines orbax logs through absl that say nothing to a user: on every read of a
+    checkpoint's leaf metadata, that the item's folder has no _CHECKPOINT_METADATA (the
+    manager keeps it one level up); on reading a step's metadata, that it was not told how
+    to restore the item (it was not asked to) or could not read the item's metadata (a
+    damaged checkpoint, which the run reports in one line of its own); that a save waited
+    for the one before it; and, on a resume after a kill, that it removes an unfinished
+    save's folder (the run rolls back to its last checkpoint anyway)."""
 
-    NOISE = ("_CHECKPOINT_METADATA", "Please provide a `CheckpointHandlerRegistry`")
+    NOISE = ("_CHECKPOINT_METADATA", "Please provide a `CheckpointHandlerRegistry`",
+             "Failed to get item metadata from directory",
+             "Waiting for previous save to complete took",
+             "Removing existing directory since it is not finalized")
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not any(noise in record.getMessage() for noise in self.NOISE)
 
 
-logging.getLogger("absl").addFilter(_NoMissingMetadataWarning())
+logging.getLogger("absl").addFilter(_OrbaxNoise())
 
 
 class _HeldLogs(logging.Filter):

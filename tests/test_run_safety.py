@@ -2,6 +2,7 @@
 once it has a checkpoint (a stop before that rolls it back, one after it commits), one
 writer per directory (two real processes), and a damaged newest checkpoint is skipped for
 the newest readable one by resume and eval."""
+import logging
 import shutil
 import subprocess
 import sys
@@ -319,3 +320,22 @@ def test_ctrl_c_before_the_first_chunk_leaves_no_half_made_run_directory(out_exi
     assert done.returncode == 130 and "Traceback" not in done.stderr, done.stderr
     assert done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
     assert (list(out.iterdir()) == []) if out_existed else not out.exists()
+
+
+def test_orbaxs_notes_that_say_nothing_to_a_user_stay_off_the_terminal(caplog):
+    """What orbax logs through absl about a slow previous save, an unfinished save's folder
+    removed on resume, or item metadata it cannot read is not shown; its other warnings are."""
+    from absl import logging as absl_logging
+
+    import hprior_jax.checkpoint  # noqa: F401  (installs the filter)
+
+    noise = ["Waiting for previous save to complete took 12.5 seconds. If this number is high,"
+             " consider checkpointing less frequently.",
+             "Attempted to create temporary directory /r/checkpoints/80.orbax-checkpoint-tmp-1"
+             " which already exists. Removing existing directory since it is not finalized.",
+             "Failed to get item metadata from directory /r/checkpoints/80/state. Either it was"
+             " not present in the checkpoint, or the handler does not support it."]
+    with caplog.at_level(logging.WARNING, logger="absl"):
+        for line in noise + ["a warning a user should see"]:
+            absl_logging.warning(line)
+    assert [r.getMessage() for r in caplog.records] == ["a warning a user should see"]
