@@ -3,6 +3,11 @@ collider that replaces the gripper-base mesh, MJX-collidable stand-ins for paire
 and the parameters MuJoCo mixes for a dynamic contact (see `tasks.metaworld.scene`)."""
 from __future__ import annotations
 
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
 import mujoco
 import numpy as np
 
@@ -101,12 +106,50 @@ def wrist_coacd(model, data, g, body, threshold: float, max_hulls: int, points: 
     verts = mesh_vertices(model, data, g, body)
     mid = model.geom_dataid[g]
     faces = model.mesh_face[model.mesh_faceadr[mid]:model.mesh_faceadr[mid] + model.mesh_facenum[mid]]
-    coacd.set_log_level("error")
-    parts = coacd.run_coacd(coacd.Mesh(verts, faces), threshold=threshold,
-                            max_convex_hull=max_hulls, preprocess_resolution=20, resolution=1000,
-                            mcts_nodes=10, mcts_iterations=60, mcts_max_depth=2, seed=0)
-    pieces = [farthest_points(v[ConvexHull(v).vertices], points) for v, _ in parts]
+    settings = (threshold, max_hulls, points, _coacd_version())
+    path = _pieces_cache(verts, faces, settings)
+    if path.exists():
+        with np.load(path) as z:
+            pieces = [z[f"piece_{i}"] for i in range(len(z.files))]
+    else:
+        coacd.set_log_level("error")
+        parts = coacd.run_coacd(coacd.Mesh(verts, faces), threshold=threshold,
+                                max_convex_hull=max_hulls, preprocess_resolution=20,
+                                resolution=1000, mcts_nodes=10, mcts_iterations=60,
+                                mcts_max_depth=2, seed=0)
+        pieces = [farthest_points(v[ConvexHull(v).vertices], points) for v, _ in parts]
+        _save_pieces(path, pieces)
     return pieces if keep is None else [pieces[i] for i in keep]
+
+
+def _coacd_version() -> str:
+    from importlib import metadata
+
+    return metadata.version("coacd")
+
+
+def _pieces_cache(verts: np.ndarray, faces: np.ndarray, settings: tuple) -> Path:
+    """Where a decomposition is kept: CoACD takes about 10 s and gives the same pieces for the
+    same mesh, settings and version (seed 0), so each process need not run it again.
+    $HPRIOR_COACD_CACHE, default ~/.cache/hprior_jax/coacd."""
+    h = hashlib.sha256()
+    for array in (verts, faces):
+        h.update(np.ascontiguousarray(array).tobytes())
+    h.update(repr(settings).encode())
+    root = Path(os.environ.get("HPRIOR_COACD_CACHE",
+                               Path.home() / ".cache" / "hprior_jax" / "coacd"))
+    return root / f"{h.hexdigest()[:20]}.npz"
+
+
+def _save_pieces(path: Path, pieces: list[np.ndarray]) -> None:
+    """Written whole or not at all (another process may read it meanwhile)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as f:
+            np.savez(f, **{f"piece_{i}": p for i, p in enumerate(pieces)})
+        os.replace(f.name, path)
+    except OSError:  # a read-only or full cache: the next process decomposes again
+        pass
 
 
 def add_wrist(spec: mujoco.MjSpec, full: mujoco.MjModel, full_data: mujoco.MjData,

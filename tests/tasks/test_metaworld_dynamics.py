@@ -180,3 +180,27 @@ def test_each_reset_keeps_its_own_placement():
         env.reset()
         placements.append(task.info_from_metaworld(env)["placement"])
     assert not np.array_equal(*placements)
+
+
+def test_the_wrist_decomposition_is_kept_and_reused(tmp_path, monkeypatch):
+    """CoACD (about 10 s) runs once per mesh, settings and version: the next build reads the
+    kept pieces, equal to a fresh decomposition's."""
+    from tasks.metaworld import colliders
+    from tasks.metaworld.scene import _load_named
+
+    monkeypatch.setenv("HPRIOR_COACD_CACHE", str(tmp_path))
+    _, ref, ref_data = _load_named(make_task("button_press").scene.xml)
+    src, body = colliders.wrist_source(ref), ref.body("right_hand").id
+    fresh = colliders.wrist_coacd(ref, ref_data, src, body, 0.3, 8, 24)
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    import coacd
+
+    calls, run = [], coacd.run_coacd
+    monkeypatch.setattr(coacd, "run_coacd", lambda *a, **k: calls.append(1) or run(*a, **k))
+    kept = colliders.wrist_coacd(ref, ref_data, src, body, 0.3, 8, 24)
+    assert calls == [] and len(kept) == len(fresh)
+    for a, b in zip(kept, fresh):
+        np.testing.assert_array_equal(a, b)
+    # other settings are another decomposition
+    colliders.wrist_coacd(ref, ref_data, src, body, 0.3, 8, 16)
+    assert len(calls) == 1
