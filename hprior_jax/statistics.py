@@ -157,3 +157,19 @@ def pooled_difference(comparisons: list[dict]) -> dict:
     z = stats.norm.ppf((1 + LEVEL) / 2)
     return {"n_datasets": len(usable), "diff": mean, "diff_lo": mean - z * se,
             "diff_hi": mean + z * se, "p": float(2 * stats.norm.sf(abs(mean) / se))}
+
+
+def verdict(a: str, n: int, diff: float, p_holm: float, tost_p_holm: float, margin: float,
+            mde80: float) -> str:
+    """The words of a pre-registered contrast A − B: "A higher" / "A lower" where its
+    Holm-adjusted p < ALPHA; "equivalent within ±margin" where its Holm-adjusted TOST p <
+    ALPHA; otherwise "not detected" (with the MDE80 this n had), never "no difference";
+    "not testable" with fewer than 2 pairs."""
+    if n < 2:
+        return "not testable"
+    if p_holm < ALPHA:
+        return f"{a} {'higher' if diff > 0 else 'lower'}"
+    if tost_p_holm < ALPHA:
+        return f"equivalent within ±{margin:.3f}"
+    return "not detected" + (f" (MDE80 {mde80:.3f})" if np.isfinite(mde80) else "")
+

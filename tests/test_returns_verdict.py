@@ -80,7 +80,7 @@ def test_verdict_words():
                 tost_margin=0.07, mde80=0.15)
     assert rv.verdict(base) == "a higher"
     assert rv.verdict(base | dict(diff=-0.1)) == "a lower"
-    assert rv.verdict(base | dict(holm_p=0.3, tost_holm_p=0.01)) == "equivalent within ±0.07"
+    assert rv.verdict(base | dict(holm_p=0.3, tost_holm_p=0.01)) == "equivalent within ±0.070"
     assert rv.verdict(base | dict(holm_p=0.3)) == "not detected (MDE80 0.150)"
     assert rv.verdict(base | dict(n=0)) == "not run yet"
 

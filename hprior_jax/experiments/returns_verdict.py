@@ -24,8 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from hprior_jax import statistics
 from hprior_jax.experiments.report import discover, reward_correlations
-from hprior_jax.plotting import save_figure
+from hprior_jax.experiments.scores import normalized_score, reference_curve
+from hprior_jax.plotting import read_eval_csv, save_figure
 from hprior_jax.run_log import read_jsonl
 from hprior_jax.statistics import holm, mean_ci, paired_comparison, tost_p
 
@@ -91,9 +93,9 @@ def collect(roots, into: Path) -> list[str]:
         for task, by_algo in runs.items():
             for algo, run_dir in by_algo.items():
                 cfg = json.loads((run_dir / "config.json").read_text())
-                evals = [dict(task=task, algo=algo, seed=int(r["seed"]), step=int(r["step"]),
-                              true_return=float(r["true_return"]))
-                         for r in _read(run_dir / "eval.csv")]
+                evals = [dict(task=task, algo=algo, seed=seed, step=int(t), true_return=float(v))
+                         for seed, (steps, values) in read_eval_csv(run_dir / "eval.csv").items()
+                         for t, v in zip(steps, values)]
                 if max((e["step"] for e in evals), default=0) < cfg["steps"]:
                     lines.append(f"{task}/{algo} in {root}: not complete, skipped")
                     continue
@@ -160,17 +162,16 @@ def _span(seeds) -> str:
 
 
 def scores(plan: Plan, by_run: dict, task: str) -> tuple[dict, list[int]]:
-    """({algo: {seed: normalized score}}, the steps averaged) of a complete task."""
-    ref = by_run[(task, plan.reference)]
-    ref_seeds = [s for s in plan.reference_seeds]
-    common = sorted(set.intersection(*(set(ref[s]) for s in ref_seeds)))
-    steps = common[-plan.last_evals:]
-    denominator = float(np.mean([[ref[s][t] for t in steps] for s in ref_seeds]))
-    out = {}
-    for algo in plan.methods:
-        run = by_run[(task, algo)]
-        out[algo] = {s: float(np.mean([run[s][t] for t in steps])) / denominator
-                     for s in plan.seeds}
+    """({algo: {seed: normalized score}}, the steps averaged) of a complete task: the
+    project's normalization (`experiments.scores`: the reference's mean over its seeds),
+    as a ratio of means over the reference's last `plan.last_evals` evaluation steps."""
+    as_curve = lambda d: (np.asarray(sorted(d)), np.asarray([d[t] for t in sorted(d)]))  # noqa: E731
+    ref = reference_curve({s: as_curve(by_run[(task, plan.reference)][s])
+                           for s in plan.reference_seeds})
+    steps = [int(t) for t in ref[0][-plan.last_evals:]]
+    out = {algo: {s: normalized_score(as_curve(by_run[(task, algo)][s]), ref, "ratio-of-means",
+                                      after_step=steps[0] - 1)[0] for s in plan.seeds}
+           for algo in plan.methods}
     return out, steps
 
 
@@ -194,23 +195,19 @@ def contrasts(plan: Plan, by_task: dict) -> list[dict]:
             rows.append(row)
     # the family is every planned test: an incomplete task's count as not rejected (p = 1)
     adjusted = holm([1.0 if r["p"] != r["p"] else r["p"] for r in rows])
-    tost_family = [r["tost_p"] for r in rows if r["tost_p"] == r["tost_p"]]
-    tost_adjusted = iter(holm(tost_family))
-    for r, p in zip(rows, adjusted):
+    # the equivalence family: the tests that have a margin (holm leaves NaN out)
+    tost_adjusted = holm([r["tost_p"] for r in rows])
+    for r, p, tost in zip(rows, adjusted, tost_adjusted):
         r["holm_p"] = p if r["n"] else float("nan")
-        r["tost_holm_p"] = next(tost_adjusted) if r["tost_p"] == r["tost_p"] else float("nan")
+        r["tost_holm_p"] = tost
     return rows
 
 
-def verdict(r: dict, alpha: float = 0.05) -> str:
-    a, b = r["contrast"].split(" - ")
+def verdict(r: dict) -> str:
     if not r["n"]:
         return "not run yet"
-    if r["holm_p"] < alpha:
-        return f"{a} {'higher' if r['diff'] > 0 else 'lower'}"
-    if r["tost_holm_p"] < alpha:
-        return f"equivalent within ±{r['tost_margin']:.2f}"
-    return f"not detected (MDE80 {r['mde80']:.3f})"
+    return statistics.verdict(r["contrast"].split(" - ")[0], r["n"], r["diff"], r["holm_p"],
+                              r["tost_holm_p"], r["tost_margin"], r["mde80"])
 
 
 def _fmt(x, digits=3) -> str:

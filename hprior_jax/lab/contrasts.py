@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hprior_jax.statistics import (ALPHA, NAN, holm, paired_comparison, pooled_difference,
-                                   tost_p)
+from hprior_jax import statistics
+from hprior_jax.statistics import NAN, holm, paired_comparison, pooled_difference, tost_p
 
 
 @dataclass(frozen=True)
@@ -98,14 +98,8 @@ def evaluate(by_cell: dict, contrasts: list[Contrast], metrics: list[str]) -> li
 
 
 def verdict(e: dict) -> str:
-    a, b = e["contrast"].split(" − ")
-    if e["n"] < 2:
-        return "not testable"
-    if e["p_holm"] < ALPHA:
-        return f"{a} {'higher' if e['diff'] > 0 else 'lower'}"
-    if e["tost_p_holm"] < ALPHA:
-        return f"equivalent within ±{e['margin']:.3f}"
-    return "not detected" + (f" (MDE80 {e['mde80']:.3f})" if np.isfinite(e["mde80"]) else "")
+    return statistics.verdict(e["contrast"].split(" − ")[0], e["n"], e["diff"], e["p_holm"],
+                              e["tost_p_holm"], e["margin"], e["mde80"])
 
 
 def pooled(results: list[dict]) -> list[dict]:
