@@ -179,6 +179,14 @@ def differing_fields(a: RunConfig, b: RunConfig) -> list[str]:
     return _differing(dataclasses.asdict(a), dataclasses.asdict(b))
 
 
+def field_value(cfg, dotted: str):
+    """The value of dotted field name `dotted` (as `differing_fields` names it) in a config
+    or its JSON form; a tuple reads as a list, so both forms print alike in a message."""
+    for part in dotted.split("."):
+        cfg = cfg.get(part) if isinstance(cfg, dict) else getattr(cfg, part)
+    return list(cfg) if isinstance(cfg, tuple) else cfg
+
+
 def _differing(a: dict, b: dict, prefix: str = "") -> list[str]:
     out = []
     for k in sorted(set(a) | set(b)):

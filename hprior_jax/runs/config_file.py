@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from hprior_jax.checkpoint import Checkpointer
-from hprior_jax.config import CHANGEABLE_ON_RESUME, RunConfig, differing_fields
+from hprior_jax.config import CHANGEABLE_ON_RESUME, RunConfig, differing_fields, field_value
 from hprior_jax.loop.run_files import latest_checkpoint_step
 from hprior_jax.methods import registry
 
@@ -71,12 +71,12 @@ def check_fits_checkpoint(run_dir: Path, cfg: RunConfig) -> None:
     if "algo" in fields:  # another method: its sections differ with it
         fields = ["algo"]
     if fields:
-        values = ", ".join(f"{k} ({_get(saved, k)!r} there, {_get(cfg, k)!r} here)"
-                           for k in fields)
+        values = ", ".join(f"{k} ({field_value(saved, k)!r} there, "
+                           f"{field_value(cfg, k)!r} here)" for k in fields)
         raise ConfigFileError(
-            f"{Path(run_dir) / 'config.json'} differs from the configuration its newest checkpoint was "
-            f"written under: {values}. Put the checkpoint's values back in config.json to "
-            "resume it, or start a new run (another --out) with the new ones")
+            f"{Path(run_dir) / 'config.json'} differs from the configuration its newest "
+            f"checkpoint was written under: {values}. Put the checkpoint's values back in "
+            "config.json to resume it, or start a new run (another --out) with the new ones")
 
 
 def _saved_config(run_dir: Path) -> dict | None:
@@ -97,9 +97,3 @@ def _dataclass_or_none(saved: dict) -> RunConfig | None:
         return read_config(saved)
     except (ValueError, TypeError, KeyError):
         return None
-
-
-def _get(cfg, dotted: str):
-    for part in dotted.split("."):
-        cfg = cfg.get(part) if isinstance(cfg, dict) else getattr(cfg, part)
-    return list(cfg) if isinstance(cfg, tuple) else cfg

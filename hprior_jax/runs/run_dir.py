@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from hprior_jax.config import CHANGEABLE_ON_RESUME, RunConfig, differing_fields
+from hprior_jax.config import CHANGEABLE_ON_RESUME, RunConfig, differing_fields, field_value
 from hprior_jax.loop.run_files import EXTENDING, latest_checkpoint_step, write_atomic
 from hprior_jax.runs.config_file import (  # noqa: F401  (read here by the commands)
     load_run_config, read_config, read_json)
@@ -121,8 +121,8 @@ def resume_config(run_dir: Path, requested: RunConfig,
     changed = [k for k in differing_fields(old, requested) if k != "out"]
     refused = [k for k in changed if k not in CHANGEABLE_ON_RESUME]
     if refused:
-        flags = ", ".join(f"{wording.field(k)} ({_get(old, k)!r} -> {_get(requested, k)!r})"
-                          for k in refused)
+        flags = ", ".join(f"{wording.field(k)} ({field_value(old, k)!r} -> "
+                          f"{field_value(requested, k)!r})" for k in refused)
         raise ValueError(
             f"{wording.resuming} continues {run_dir} as it was configured; these cannot "
             f"change: {flags}. A resumed run may change only "
@@ -143,9 +143,3 @@ def resume_config(run_dir: Path, requested: RunConfig,
     write_atomic(Path(run_dir) / EXTENDING, json.dumps(
         {"from_step": checkpoint_step or 0, "config": pending}, indent=2) + "\n")
     return new, old.capacity if new.capacity != old.capacity else None
-
-
-def _get(cfg, dotted: str):
-    for part in dotted.split("."):
-        cfg = getattr(cfg, part)
-    return cfg
