@@ -101,15 +101,11 @@ def _name(path) -> str:
     return jax.tree_util.keystr(path)
 
 
-def _flat(tree) -> dict:
-    """{path: leaf} without zero-size leaves (orbax refuses to write them; e.g. MJX's empty
-    `act` for models without actuator activations). Restore takes those from `like`."""
-    return {_name(p): x for p, x in _with_path(tree) if x.size}
-
-
 def leaves_by_name(tree) -> dict:
-    """{leaf name: leaf} as a checkpoint stores `tree` (zero-size leaves left out)."""
-    return _flat(tree)
+    """{leaf name: leaf} as a checkpoint stores `tree`: without zero-size leaves (orbax
+    refuses to write them; e.g. MJX's empty `act` for models without actuator
+    activations). Restore takes those from `like`."""
+    return {_name(p): x for p, x in _with_path(tree) if x.size}
 
 
 class Checkpointer:
@@ -126,7 +122,7 @@ class Checkpointer:
         printed."""
         with _HeldLogs().held() as logs:
             try:
-                self._manager.save(step, args=ocp.args.StandardSave(_flat(state)),
+                self._manager.save(step, args=ocp.args.StandardSave(leaves_by_name(state)),
                                    custom_metadata=metadata)
                 self._manager.wait_until_finished()
             except Exception as e:
@@ -153,7 +149,7 @@ class Checkpointer:
         return set(self._metadata(step).keys())
 
     def stored_shape(self, name: str, step: int | None = None) -> tuple[int, ...]:
-        return tuple(self._metadata(step)[name].shape)
+        return self.stored_shapes(step)[name]
 
     def stored_shapes(self, step: int | None = None) -> dict[str, tuple[int, ...]]:
         return {name: tuple(m.shape) for name, m in self._metadata(step).items()}
@@ -172,7 +168,7 @@ class Checkpointer:
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
         rename = rename or (lambda name: name)
-        flat_like = _flat(like)
+        flat_like = leaves_by_name(like)
         stored = {name: rename(name) for name in flat_like}
         abstract = {stored[name]: ocp.utils.to_shape_dtype_struct(x)
                     for name, x in flat_like.items() if stored[name] is not None}
