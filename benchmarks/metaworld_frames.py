@@ -10,9 +10,8 @@ import argparse
 
 import numpy as np
 
-import hprior_jax  # noqa: F401  (XLA flags before jax)
-import tasks
 from hprior_jax import make_env
+from tasks.metaworld.reference import ports
 
 
 def task_frames(name: str, width: int, height: int) -> list[np.ndarray]:
@@ -30,7 +29,7 @@ def main() -> None:
     args = p.parse_args()
     import imageio.v3 as iio
 
-    names = [n for n in tasks.names() if tasks.info(n).domain == "metaworld"]
+    names = ports()
     rows = []
     for name in names:
         print(name, flush=True)

@@ -19,10 +19,11 @@ from hprior_jax import make_env, presets
 from hprior_jax.loop.episodes import episode_states
 from hprior_jax.render import render_frames
 from hprior_jax.runs.build import build_engine
+from tasks.metaworld.reference import ports
 from tasks.render_scene import PLACEMENT, render_scene
 
 W, H = 320, 240  # the size a person is shown
-METAWORLD = [n for n in tasks.names() if tasks.info(n).domain == "metaworld"]
+METAWORLD = ports()
 # The fast suite checks `render_states` on every task without compiling a step (MJX data put
 # from C MuJoCo) and `Env.render` on one; each path's own program (Env.render's reset, the
 # recorder's episode scan, the engine's recorded physics) on every task runs under -m slow
