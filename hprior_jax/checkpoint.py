@@ -23,12 +23,15 @@ class _OrbaxNoise(logging.Filter):
     to restore the item (it was not asked to) or could not read the item's metadata (a
     damaged checkpoint, which the run reports in one line of its own); that a save waited
     for the one before it; and, on a resume after a kill, that it removes an unfinished
-    save's folder (the run rolls back to its last checkpoint anyway)."""
+    save's folder (the run rolls back to its last checkpoint anyway); and a writer thread's
+    report that the disk is full, which can come after the save has failed (the run says
+    so in one line)."""
 
     NOISE = ("_CHECKPOINT_METADATA", "Please provide a `CheckpointHandlerRegistry`",
              "Failed to get item metadata from directory",
              "Waiting for previous save to complete took",
-             "Removing existing directory since it is not finalized")
+             "Removing existing directory since it is not finalized",
+             "No space left on device")
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not any(noise in record.getMessage() for noise in self.NOISE)
@@ -62,23 +65,44 @@ class _HeldLogs(logging.Filter):
                 logger.handle(record)
 
 
+def _closed_loop_callback(kind, value, tb) -> bool:
+    frames = traceback.extract_tb(tb)
+    return (kind is RuntimeError and str(value) == "Event loop is closed" and bool(frames)
+            and frames[0].name == "call_soon_threadsafe")
+
+
 def _quiet_late_writes() -> None:
-    """After a save failed, TensorStore's writes still in flight finish on its own threads
-    and call back into the event loop orbax has closed; each such RuntimeError is printed
-    as a traceback (through sys.excepthook), dozens of them, some after the error line. They
-    say nothing the error did not: drop them (and only them) from then on."""
-    previous = sys.excepthook
-    if getattr(previous, "quiet_late_writes", False):
+    """When a save fails (a full disk), TensorStore's writes still in flight finish on its own
+    threads and call back into the event loop orbax has already closed, which can happen
+    before the save's error reaches this module; each such RuntimeError is printed as a
+    traceback (through sys.excepthook or sys.unraisablehook), dozens of them. They say
+    nothing the error does not: drop them (and only them)."""
+    if getattr(sys.excepthook, "quiet_late_writes", False):
         return
+    previous_except, previous_unraisable = sys.excepthook, sys.unraisablehook
 
-    def hook(kind, value, tb):
-        frames = traceback.extract_tb(tb)
-        if not (kind is RuntimeError and str(value) == "Event loop is closed" and frames
-                and frames[0].name == "call_soon_threadsafe"):
-            previous(kind, value, tb)
+    def except_hook(kind, value, tb):
+        if not _closed_loop_callback(kind, value, tb):
+            previous_except(kind, value, tb)
 
-    hook.quiet_late_writes = True
-    sys.excepthook = hook
+    def unraisable_hook(unraisable):
+        if not _closed_loop_callback(unraisable.exc_type, unraisable.exc_value,
+                                     unraisable.exc_traceback):
+            previous_unraisable(unraisable)
+
+    except_hook.quiet_late_writes = True
+    sys.excepthook, sys.unraisablehook = except_hook, unraisable_hook
+    logging.getLogger("asyncio").addFilter(_UnretrievedNoSpace())
+
+
+class _UnretrievedNoSpace(logging.Filter):
+    """asyncio logs each of orbax's writer tasks that failed for want of space and was never
+    awaited ("Task exception was never retrieved") when the task is collected: drop those
+    records, keep every other."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        return not (error is not None and _no_space(error))
 
 
 def _no_space(error: BaseException) -> bool:
@@ -91,6 +115,9 @@ def _no_space(error: BaseException) -> bool:
             return True
         error = error.__cause__ or error.__context__
     return False
+
+
+_quiet_late_writes()
 
 
 def _with_path(tree):
@@ -130,7 +157,6 @@ class Checkpointer:
                     raise
                 logs.records.clear()
                 self.failed = True
-                _quiet_late_writes()
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC),
                               str(self.directory / str(step))) from None
 
