@@ -1,8 +1,11 @@
 """The library's shape, checked: small files, short functions, no project import hidden in a
-function outside the command line (the layers themselves: `lint-imports`, pyproject.toml),
-no dates in code."""
+function outside the command line, imports one way through the layers (`lint-imports`,
+pyproject.toml), no dates in code."""
 import ast
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -76,3 +79,12 @@ def test_the_architecture_page_names_modules_that_exist():
     assert len(paths) > 20, paths
     missing = sorted(p for p in paths if not (ROOT / p).exists())
     assert not missing, missing
+
+
+def test_imports_run_one_way_through_the_layers():
+    """import-linter's contract in pyproject.toml (the layers, from commands down to tasks)."""
+    lint = Path(sys.executable).with_name("lint-imports")
+    done = subprocess.run([str(lint), "--config", str(ROOT / "pyproject.toml")], cwd=ROOT,
+                          capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stdout + done.stderr

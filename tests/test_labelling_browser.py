@@ -1,5 +1,5 @@
 """The labelling page in a real browser: headless Chromium (Debian's `chromium` and
-`chromium-driver`, installed by .ci/run) driven by Selenium loads the page served by uvicorn,
+`chromium-driver`, installed by .ci/setup) driven by Selenium loads the page served by uvicorn,
 sees both clips play, the goal line, the speed and step controls, answers that wait until
 both clips have played through, answers with a click and with a key, reloads and finds its
 progress.
@@ -29,7 +29,7 @@ def server(folder):  # noqa: F811
 def browser():
     if CHROMEDRIVER is None:
         pytest.fail("chromedriver not found: apt-get install chromium chromium-driver "
-                    "(.ci/run does)")
+                    "(bash .ci/setup does)")
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 

@@ -229,7 +229,7 @@ def test_export_loads_a_pure_policy_without_the_run(finished, tmp_path):
 
 
 def test_render_frames_and_video(tmp_path):
-    """Offscreen rendering of a real task (OSMesa, installed by .ci/run) to an MP4."""
+    """Offscreen rendering of a real task (OSMesa, installed by .ci/setup) to an MP4."""
     import imageio.v3 as iio
     import mujoco
 

@@ -1,4 +1,5 @@
-"""README's Python example runs as written (in a scratch directory)."""
+"""README's Python example runs as written (in a scratch directory); CI runs README's set-up
+commands as written."""
 import re
 from pathlib import Path
 
@@ -29,3 +30,13 @@ def test_the_readme_example_uses_only_the_public_api():
 
     used = set(re.findall(r"hprior_jax\.(\w+)", _example()))
     assert used <= set(hprior_jax.__all__) | {"presets"}, used - set(hprior_jax.__all__)
+
+
+def test_ci_runs_exactly_the_readme_set_up_commands():
+    block = re.search(r"## Set-up: two commands.*?```bash\n(.*?)```", README.read_text(), re.S)
+    assert block, "README lost its set-up block"
+    readme = [line for line in block.group(1).splitlines() if line and not line.startswith("#")]
+    ci = (README.parent / ".ci" / "run").read_text().splitlines()
+    called = [line.split("#")[0].strip() for line in ci
+              if line and not line.startswith(("#", "set ", "cd ", "export "))]
+    assert len(readme) == 2 and called == readme, (readme, called)
