@@ -29,7 +29,9 @@ REQUIRED = ("task", "algo", "preset", "seeds", "steps", "num_seed_steps", "eval_
 # and save, not what is learned); everything else would make a different run
 CHANGEABLE_ON_RESUME = ("steps", "eval_every", "checkpoint_every", "num_eval_episodes",
                         "keep_checkpoints", "capture_video", "video_steps")
-FORMAT = 2  # config.json layout: 2 = per-method sections (1 = every run had pebble and prior)
+# config.json layout: 3 = button_press's `wrist: task` is the faithful wrist (it was the box),
+# 2 = per-method sections (1 = every run had pebble and prior)
+FORMAT = 3
 
 
 @dataclass(frozen=True)
@@ -82,12 +84,13 @@ class RunConfig:
     under the mocap weld; the scene that moves like metaworld's, see tasks/metaworld/sawyer.py),
     `free` the free-floating hand of the first ports. Runs written before this option restore
     with `free`, the scene they were trained on."""
-    wrist: Literal["task", "faithful"] = "task"
-    """MetaWorld tasks: `task` the port's registered wrist collider, `faithful` the slower one
-    with which a port whose registered scene does not move like metaworld's does (button_press:
-    convex pieces of metaworld's wrist mesh, every contact slot: return x1.02 of metaworld's
-    under its scripted policy against x1.30, at about a fifth of the env steps/s; needs
-    `pip install -e ".[coacd]"`); the other ports' registered scenes already do."""
+    wrist: Literal["task", "box"] = "task"
+    """MetaWorld tasks: `task` the port's registered wrist collider, the one with which the
+    port moves like metaworld's; `box` the wrist's bounding box, a faster scene offered where
+    the registered wrist is another (button_press: x1.30 of metaworld's return under its
+    scripted policy against the registered wrist's x1.025, at 5.6x its env steps/s; see
+    docs/ports/metaworld.md). Runs of button_press's arm scene written before format 3 with
+    `task` trained on `box`."""
     compile_level: Literal["task", "xla", "0", "1", "2", "3"] = "task"
     """XLA's backend optimisation level for the run's programs: `task` the task's
     (`tasks.TaskInfo.compile_level`: 1 where it measured a sooner first env step at the same
@@ -124,10 +127,11 @@ class RunConfig:
             raise ValueError(f"--contact-cap {self.contact_cap!r}: task or none")
         if self.hand not in ("arm", "free"):
             raise ValueError(f"--hand {self.hand!r}: arm or free")
-        if self.wrist not in ("task", "faithful"):
-            raise ValueError(f"--wrist {self.wrist!r}: task or faithful")
-        if self.wrist == "faithful" and self.hand == "free":
-            raise ValueError("--wrist faithful is a collider of the arm scene, not of --hand free")
+        if self.wrist not in ("task", "box"):
+            raise ValueError(f"--wrist {self.wrist!r}: task or box")
+        if self.wrist == "box" and self.hand == "free":
+            raise ValueError("--hand free has the box wrist already; --wrist box is an option "
+                             "of the arm scene")
         if self.compile_level not in ("task", "xla", "0", "1", "2", "3"):
             raise ValueError(f"--compile-level {self.compile_level!r}: task, xla or 0-3")
         if self.replay_capacity < 0:
@@ -145,7 +149,8 @@ class RunConfig:
 
     @staticmethod
     def from_dict(d: dict) -> "RunConfig":
-        """The inverse of `to_json` (format 2; `hprior_jax.loop.run_dir` reads format 1)."""
+        """The inverse of `to_json` (formats 2 and 3; `runs.config_file` reads format 1)."""
+        d = _wrist_of_format_2(d)
         d = {k: v for k, v in d.items() if k != "format"}
         sections = [k for k, t in typing.get_type_hints(RunConfig).items()
                     if dataclasses.is_dataclass(t)]
@@ -159,6 +164,19 @@ class RunConfig:
             d.setdefault(name, option.before if domain in option.domains else option.default)
         d.setdefault("compile_level", "xla")  # what runs before the option compiled at
         return _dataclass_from_dict(config_class(d.get("algo", registry.DEFAULT)), d)
+
+
+def _wrist_of_format_2(d: dict) -> dict:
+    """Before format 3, button_press's registered arm scene had the box wrist and the
+    faithful one was `wrist: faithful`: the same scenes under today's names."""
+    if d.get("format", 1) >= 3:
+        return d
+    old = d.get("wrist", "task")
+    if old == "faithful":
+        return {**d, "wrist": "task"}
+    if d.get("task") == "button_press" and d.get("hand") == "arm" and old == "task":
+        return {**d, "wrist": "box"}
+    return d
 
 
 @functools.cache

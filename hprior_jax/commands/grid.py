@@ -37,7 +37,7 @@ def grid(argv: list[str]) -> int:
                              "`hprior train --contact-cap`")
     parser.add_argument("--hand", default="arm", choices=("arm", "free"),
                         help="MetaWorld scene, as `hprior train --hand`")
-    parser.add_argument("--wrist", default="task", choices=("task", "faithful"),
+    parser.add_argument("--wrist", default="task", choices=("task", "box"),
                         help="MetaWorld wrist collider, as `hprior train --wrist`")
     parser.add_argument("--out", required=True, help="results directory")
     parser.add_argument("--devices", type=int, default=None,

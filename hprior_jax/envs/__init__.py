@@ -118,6 +118,8 @@ class PhysicsOption:
     before: str  # what runs written before the option existed were trained on
     port_options: Callable[[str], dict]  # a non-default value -> the port's keyword options
     refusal: str  # why another domain refuses a non-default value ({name}, {value}, {task})
+    # whether a task of those domains offers a non-default value (None: every one does)
+    offered: Callable[[str, str], bool] | None = None
 
 
 PHYSICS_OPTIONS = {
@@ -134,22 +136,31 @@ PHYSICS_OPTIONS = {
         "--{name} {value}: only the MetaWorld ports have a Sawyer hand"),
     "wrist": PhysicsOption(
         ("metaworld",), "task", "task", lambda value: {"wrist": value},
-        "--{name} {value}: only the MetaWorld ports have a wrist collider to choose"),
+        "--{name} {value}: only a MetaWorld port whose registered wrist is not the box offers "
+        "it (button_press); {task}'s wrist is its registered one",
+        offered=lambda task, value: value in getattr(tasks.task_class(task), "wrist_caps", {})),
 }
+
+
+def option_applies(name: str, task: str, value: str) -> bool:
+    """Whether task `task` offers value `value` of physics option `name`."""
+    option = PHYSICS_OPTIONS[name]
+    return value == option.default or (
+        task_info(task).domain in option.domains
+        and (option.offered is None or option.offered(task, value)))
 
 
 def task_options(cfg) -> dict:
     """The port options a run configuration asks for beyond the ports' defaults (so the
     default build is the one `tasks.make(name)` caches): `contacts="all"` on DM Control,
-    `arm=False` (`hand="free"`) and `wrist="faithful"` on MetaWorld, `max_contacts=None`
+    `arm=False` (`hand="free"`) and `wrist="box"` on MetaWorld, `max_contacts=None`
     (`contact_cap="none"`) on both."""
-    domain = task_info(cfg.task).domain
     options = {}
     for name, option in PHYSICS_OPTIONS.items():
         value = getattr(cfg, name)
         if value == option.default:
             continue
-        if domain not in option.domains:
+        if not option_applies(name, cfg.task, value):
             raise ValueError(option.refusal.format(name=name, value=value, task=cfg.task))
         options.update(option.port_options(value))
     return options

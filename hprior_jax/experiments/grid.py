@@ -41,10 +41,9 @@ class GridRun:
 def run_config(root: Path, task: str, algo: str, seeds, budget: str,
                overrides: dict) -> RunConfig:
     out = str(Path(root) / task / algo)
-    # a physics option applies to the tasks of its domain only (grids mix DMC and MetaWorld)
-    domain = envs.task_info(task).domain
+    # a physics option applies to the tasks that offer it only (grids mix DMC and MetaWorld)
     overrides = {k: v for k, v in overrides.items()
-                 if k not in envs.PHYSICS_OPTIONS or domain in envs.PHYSICS_OPTIONS[k].domains}
+                 if k not in envs.PHYSICS_OPTIONS or envs.option_applies(k, task, v)}
     return presets.train_preset(task, algo, budget, seeds=tuple(seeds), out=out, **overrides)
 
 

@@ -5,14 +5,15 @@ the box's front face. Contacts (13 pairs): claws/pads x the cap (a box) and x th
 the wrist (a box) x the button's rod, flange and cap and x the box as one block; the cap x
 the box's front face (a plane).
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks button_press [--wrist faithful]`):
-the registered scene (the wrist a box) reaches success at step 500 100% vs 100%, button down
-to -0.087 vs -0.084, hand-mocap x1.06, but returns x1.30 metaworld's (579 vs 445, 20
-episodes): metaworld's wrist mesh has a tapered front that enters the button's hole.
-`wrist="faithful"` (FAITHFUL_WRIST, every contact slot) meets all four targets at 100
-episodes (return x1.025, success 100% vs 100%, button 0.4 cm deeper, hand-mocap x1.02) at
-0.18x the registered scene's env steps/s. Same states: observation within 1.1e-6, reward
-within 1.6e-6. Details: docs/ports/metaworld.md.
+Parity (`python -m benchmarks.metaworld_dynamics --tasks button_press [--wrist box]`): the
+registered scene (the wrist as convex pieces of metaworld's wrist mesh, every contact slot)
+meets all four targets at 100 episodes of metaworld's scripted policy (return x1.025, success
+100% vs 100%, button 0.4 cm deeper, hand-mocap x1.02). `wrist="box"` (the wrist as its
+bounding box, 18 contact slots per condim group) is the faster scene: success at step 500
+100% vs 100%, button down to -0.087 vs -0.084, hand-mocap x1.06, but returns x1.30
+metaworld's (579 vs 445, 20 episodes), because metaworld's wrist mesh has a tapered front
+that enters the button's hole. Same states: observation within 1.1e-6, reward within
+1.6e-6. Details: docs/ports/metaworld.md.
 """
 from __future__ import annotations
 
@@ -24,8 +25,8 @@ from tasks.metaworld.sawyer import SawyerTask
 from tasks.metaworld.scene import SceneSpec
 
 
-# convex pieces of metaworld's wrist mesh (tasks.metaworld.colliders.parse_pieces): the
-# scene that moves like metaworld's, at a fraction of the registered scene's speed
+# convex pieces of metaworld's wrist mesh (tasks.metaworld.colliders.parse_pieces): with the
+# wrist's bounding box the button returns x1.3 metaworld's, with these pieces x1.025
 FAITHFUL_WRIST = "coacd:0.3:8:64:0,1"
 
 
@@ -35,12 +36,13 @@ class ButtonPress(SawyerTask):
     metaworld_env = "button-press-v3"
     scripted_policy = "SawyerButtonPressV3Policy"
     object_joint = "btnbox_joint"
-    faithful_wrist = FAITHFUL_WRIST
-    # MJX keeps the 18 deepest contacts per condim group (tasks.physics.with_max_contacts):
-    # metaworld's scripted policy on this port left at most 16 of its 18 condim-3 and 9 of its 32
-    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts
-    # none`, 20 episodes)
-    max_contacts = 18
+    wrist = FAITHFUL_WRIST
+    max_contacts = None  # the pieces' parity was measured with every contact slot
+    # the box wrist keeps the 18 deepest contacts per condim group
+    # (tasks.physics.with_max_contacts): metaworld's scripted policy on that scene left at
+    # most 16 of its 18 condim-3 and 9 of its 32 condim-4 slots active (`python -m
+    # benchmarks.metaworld_dynamics --wrist box --sides port --max-contacts none`, 20 episodes)
+    wrist_caps = {"box": 18}
     scene = SceneSpec(
         xml="sawyer_button_press.xml",
         hand_init_pos=(0.0, 0.4, 0.2),

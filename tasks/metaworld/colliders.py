@@ -98,10 +98,7 @@ def wrist_coacd(model, data, g, body, threshold: float, max_hulls: int, points: 
     10 s; its defaults took 9 min and gave 57 pieces), each piece on `points` of its hull
     points (farthest-point sampled), in `body`'s frame; `keep`: the pieces kept, by index.
     Unlike one hull of the whole mesh, the pieces keep the shape of its front."""
-    try:
-        import coacd
-    except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError('wrist="coacd..." needs CoACD: pip install -e ".[coacd]"') from e
+    import coacd  # a dependency; imported here, as only button_press's scene needs it
     from scipy.spatial import ConvexHull
     verts = mesh_vertices(model, data, g, body)
     mid = model.geom_dataid[g]

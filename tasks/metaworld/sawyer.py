@@ -59,10 +59,10 @@ class SawyerTask(Task):
     goal_low: tuple | None = None  # goal_space; None -> hand bounds (metaworld default)
     goal_high: tuple | None = None
     wrist: str | int = "box"  # the task's wrist collider (build_scene); a task may pick a hull
-    # the slower wrist collider with which a port whose registered scene does not move like
-    # metaworld's does (`wrist="faithful"`; None: the registered scene already does)
-    faithful_wrist: str | None = None
     max_contacts: int | None = None  # MJX's contact cap (build_scene); None: every slot
+    # the contact cap measured for a wrist other than the registered one (`wrist="box"` on a
+    # task whose registered wrist is not the box)
+    wrist_caps: dict = {}
 
     # the metaworld task a port reproduces, read by the checks against it (reference.py,
     # closed_loop.py): its v3 env id and the class of its scripted policy (metaworld.policies)
@@ -96,14 +96,14 @@ class SawyerTask(Task):
         wrist="mesh" or keep_cylinders=True build metaworld's exact shapes for C MuJoCo
         diagnostics (`mj_model`); MJX cannot collide them, so `model` (the MJX step's) is
         then the box-wrist scene's: right for kinematics, not for contacts.
-        wrist="faithful": `faithful_wrist` with every contact slot (where the task has one;
-        the registered scene otherwise)."""
+        max_contacts="task": the cap measured for the wrist built (`wrist_caps`), else the
+        registered one."""
         self.partially_observable = partially_observable
         self.arm = arm
-        if wrist == "faithful" and self.faithful_wrist is not None:
-            wrist, max_contacts = self.faithful_wrist, None  # measured without a cap
-        self.wrist = self.wrist if wrist in (None, "faithful") else wrist
-        self.max_contacts = self.max_contacts if max_contacts == "task" else max_contacts
+        self.wrist = self.wrist if wrist is None else wrist
+        if max_contacts == "task":
+            max_contacts = self.wrist_caps.get(self.wrist, type(self).max_contacts)
+        self.max_contacts = max_contacts
         self._build_models(solver_iterations, ls_iterations, metaworld_invweights,
                            keep_cylinders)
         self.control_timestep = FRAME_SKIP * float(self.mj_model.opt.timestep)

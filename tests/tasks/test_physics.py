@@ -122,6 +122,23 @@ def test_runs_before_the_hand_option_restore_with_the_free_hand():
         task_options(RunConfig(task="cheetah_run", algo="sac", hand="free"))
 
 
+def test_button_press_runs_before_format_3_restore_with_the_wrist_they_trained_on():
+    """Before format 3 button_press's registered arm scene had the box wrist and the faithful
+    one was `wrist: faithful`; today `task` is the faithful wrist and `box` an option of
+    button_press alone."""
+    d = json.loads(RunConfig(task="button_press", algo="sac").to_json())
+    assert d["format"] == 3 and RunConfig.from_dict(d).wrist == "task"
+    old = {**d, "format": 2}
+    assert RunConfig.from_dict(old).wrist == "box"
+    assert RunConfig.from_dict({**old, "wrist": "faithful"}).wrist == "task"
+    assert RunConfig.from_dict({**old, "hand": "free"}).wrist == "task"  # free: the box anyway
+    drawer = {**json.loads(RunConfig(task="drawer_open", algo="sac").to_json()), "format": 2}
+    assert RunConfig.from_dict(drawer).wrist == "task"
+    assert task_options(RunConfig.from_dict(old)) == {"wrist": "box"}
+    with pytest.raises(ValueError, match="registered wrist is not the box"):
+        task_options(RunConfig(task="drawer_open", algo="sac", wrist="box"))
+
+
 def _forward(task, q):
     return physics.forward(task.model, physics.mjx.make_data(task.model).replace(qpos=q))
 
