@@ -9,6 +9,7 @@
     hprior grid --tasks cheetah_run --algos sac pebble prior --preset reduced --out results
     hprior report results
     hprior reward-lab --task cheetah_run --seeds 20 --budgets 25 100 400
+    hprior reward-lab report runs/reward_lab/cheetah_run/results.csv lab_report
     hprior tasks
     hprior methods
 """
@@ -40,6 +41,7 @@ commands:
   grid       every (task, algorithm) with its seeds; skips finished runs, resumes the rest
   report     Tables 6-7, paired t-tests, learning curves of a grid's results directory
   reward-lab which method learns the better reward from the same labels, on fixed data
+             (reward-lab report: a lab's report again, or several labs' merged)
   tasks      list the registered tasks
   methods    list the registered methods (--algo)
 

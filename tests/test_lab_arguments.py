@@ -34,3 +34,19 @@ def test_a_bad_lab_argument_is_refused_before_any_work(bad, says, tmp_path, monk
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
     assert not started and not any(tmp_path.iterdir())
+
+
+def test_the_lab_and_its_report_are_one_command_with_their_own_help(capsys):
+    """`hprior reward-lab --help` points to `hprior reward-lab report`, whose own help is
+    the report's arguments; the lab's --task stays required without `report`."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reward-lab", "--help"])
+    assert e.value.code == 0 and "hprior reward-lab report RESULTS_CSV" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reward-lab", "report", "--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0 and out.startswith("usage: hprior reward-lab report")
+    assert "--tags" in out and "--task" not in out
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reward-lab", "--seeds", "3"])
+    assert e.value.code == 2 and "--task" in capsys.readouterr().err

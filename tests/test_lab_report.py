@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from hprior_jax.commands.reward_lab import report as report_command
 from hprior_jax.lab import report as lab_report
 from hprior_jax.lab.report import METRICS, summarize, write_report
 from hprior_jax.statistics import (mean_ci, minimum_detectable_effect, paired_comparison,
@@ -120,7 +121,7 @@ def test_summarize_rejects_a_repeated_seed():
         summarize(rows + [dict(rows[0])])
 
 
-def test_write_report_and_main_regenerate_it(tmp_path):
+def test_write_report_and_the_report_command_regenerate_it(tmp_path):
     out = tmp_path / "lab"
     report = write_report(_synthetic_rows(), out)
 
@@ -139,16 +140,33 @@ def test_write_report_and_main_regenerate_it(tmp_path):
         assert len(list(csv.DictReader(f))) == len(METRICS) * len(BUDGETS) * 3
 
     again = tmp_path / "again"
-    assert lab_report.main([str(out / "results.csv"), str(again)]) == again / "report.md"
+    assert report_command([str(out / "results.csv"), str(again)]) == again / "report.md"
     for name in ("summary.csv", "results.csv", "report.md"):
         assert (again / name).read_bytes() == (out / name).read_bytes()
+
+
+def test_hprior_reward_lab_report_runs_the_report_command(tmp_path, capsys):
+    """`hprior reward-lab report`: exit 0 and the report's path; a bad argument exits 2
+    before anything is written; the report module has no entry of its own."""
+    from hprior_jax import cli
+
+    write_report(_synthetic_rows(), tmp_path / "in", figures=False)
+    results = str(tmp_path / "in" / "results.csv")
+    assert cli.main(["reward-lab", "report", results, str(tmp_path / "out"), "--no-figures"]) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "out" / "report.md")
+    assert (tmp_path / "out" / "report.md").read_bytes() == (
+        tmp_path / "in" / "report.md").read_bytes()
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reward-lab", "report", results, str(tmp_path / "bad"), "--pairs", "better"])
+    assert e.value.code == 2 and "write each pair as A:B" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists() and not hasattr(lab_report, "main")
 
 
 def test_no_figures_writes_tables_only_and_no_reference_is_named_when_none_ran(tmp_path):
     rows = [r for r in _synthetic_rows() if r["rule"] != "pebble"]
     write_report(rows, tmp_path / "in")
     assert "![" in (tmp_path / "in" / "report.md").read_text()
-    text = lab_report.main([str(tmp_path / "in" / "results.csv"), str(tmp_path / "out"),
+    text = report_command([str(tmp_path / "in" / "results.csv"), str(tmp_path / "out"),
                             "--no-figures"]).read_text()
     assert not list((tmp_path / "out").glob("*.png")) and "![" not in text and ".png" not in text
     assert "Differences are on the seeds both ran" in text and "pebble" not in text
@@ -156,7 +174,7 @@ def test_no_figures_writes_tables_only_and_no_reference_is_named_when_none_ran(t
         _synthetic_rows(), tmp_path / "ref", figures=False).read_text()
 
 
-def test_main_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
+def test_the_report_command_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
     """Two labs of the same seeds (e.g. two world models): their own rules join one report;
     the reference rule both ran is kept once, from the first file, and a disagreement between
     the two copies is counted and said."""
@@ -174,7 +192,7 @@ def test_main_merges_labs_keeping_the_first_files_shared_rows(tmp_path, capsys):
     kept = next(r for r in merged if (r["rule"], r["seed"], r["budget"])
                 == (moved["rule"], 0, moved["budget"]))
     assert kept["pearson"] == pytest.approx(moved["pearson"] - 0.5)
-    lab_report.main([*map(str, paths), str(tmp_path / "both")])
+    report_command([*map(str, paths), str(tmp_path / "both")])
     assert "1 rows found in several files differ" in capsys.readouterr().err
     text = (tmp_path / "both" / "report.md").read_text()
     assert "- better − pebble at" in text and "- same − pebble at" in text
@@ -194,13 +212,13 @@ def test_tags_rename_a_labs_rules_so_two_settings_of_every_rule_compare(tmp_path
                                            "pebble[t]", "better[t]", "same[t]"}
     with pytest.raises(ValueError, match="one per file"):
         lab_report.merge_results(paths, ["t"])
-    lab_report.main([*map(str, paths), str(tmp_path / "both"), "--tags", "", "t",
+    report_command([*map(str, paths), str(tmp_path / "both"), "--tags", "", "t",
                      "--pairs", "pebble[t]:pebble"])
     with (tmp_path / "both" / "pairs.csv").open() as f:
         pearson = [r for r in csv.DictReader(f) if r["metric"] == "pearson"]
     assert len(pearson) == len(BUDGETS)
     assert all(float(r["diff"]) == pytest.approx(0.25) for r in pearson)
-    lab_report.main([*map(str, paths), str(tmp_path / "some"), "--tags", "", "t",
+    report_command([*map(str, paths), str(tmp_path / "some"), "--tags", "", "t",
                      "--only", "pebble", "pebble[t]"])
     assert {r["rule"] for r in lab_report.read_results(tmp_path / "some" / "results.csv")} == {
         "pebble", "pebble[t]"}
@@ -227,7 +245,7 @@ def test_pairs_compare_any_two_rules_as_the_reference_comparison_does(tmp_path):
     assert "| better − pebble |" in text and "- same − better at 25 labels:" in text
     with pytest.raises(ValueError, match="both rules"):
         write_report(rows, tmp_path / "x", pairs=[("better", "oracle")])
-    assert lab_report.main([str(tmp_path / "results.csv"), str(tmp_path / "again"), "--pairs",
+    assert report_command([str(tmp_path / "results.csv"), str(tmp_path / "again"), "--pairs",
                             "better:pebble", "same:better"])
     assert (tmp_path / "again" / "pairs.csv").read_bytes() == (tmp_path / "pairs.csv").read_bytes()
 
@@ -296,17 +314,17 @@ def test_seed_shards_merge_into_one_report_with_their_world_model_notes(tmp_path
         (tmp_path / name / "run_info.json").write_text(json.dumps(dict(
             uniform_credit_ceiling={"pearson": 0.9, "episode_pearson": 0.8}, segment_len=50)))
     paths = [str(tmp_path / n / "results.csv") for n in ("a", "b")]
-    text = lab_report.main([*paths, str(tmp_path / "both")]).read_text()
+    text = report_command([*paths, str(tmp_path / "both")]).read_text()
     assert "5 seeds per (task, rule, budget)" in text
     assert "does not predict** (skill over persistence -0.180, mean of 5 seeds" in text
     assert "within-episode Pearson 0.800" in text
     assert [d["seed"] for d in read_diagnostics(tmp_path / "both" / "diagnostics.csv")] == [
         0, 1, 2, 3, 4]
     assert "different datasets" not in text
-    text = lab_report.main([paths[0], paths[0], str(tmp_path / "twice")]).read_text()
+    text = report_command([paths[0], paths[0], str(tmp_path / "twice")]).read_text()
     assert "does not predict" not in text and not (tmp_path / "twice" / "diagnostics.csv").exists()
     for name, digest in (("a", "d1"), ("b", "d2")):  # a shard built its dataset differently
         info = tmp_path / name / "run_info.json"
         info.write_text(json.dumps({**json.loads(info.read_text()), "dataset_digest": digest}))
-    text = lab_report.main([*paths, str(tmp_path / "mixed")]).read_text()
+    text = report_command([*paths, str(tmp_path / "mixed")]).read_text()
     assert "these labs learned from different datasets** (digests d1, d2)" in text

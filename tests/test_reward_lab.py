@@ -15,7 +15,8 @@ from hprior_jax.lab import metrics
 from hprior_jax.lab.dataset import Dataset, heldout_pairs, split_episodes
 from hprior_jax.lab.config import LabConfig
 from hprior_jax.lab.learn import Lab
-from hprior_jax.lab.sweep import default_rules, lab_config, rules
+from hprior_jax.lab.rules import REFERENCE, default_rules, rules
+from hprior_jax.lab.sweep import lab_config
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
@@ -54,7 +55,8 @@ TINY_WM = WorldModelConfig(obs_size=4, act_size=2, latent_dim=4, obs_hidden=(16,
 
 
 def tiny(**kw) -> LabConfig:
-    from hprior_jax.methods.surf import SurfConfig, SurfLabRule
+    from hprior_jax.lab.surf_round import SurfLabRule
+    from hprior_jax.methods.surf import SurfConfig
 
     known = rules()
     names = kw.get("rules", ALL)
@@ -77,8 +79,15 @@ def by_cell(rows):
 
 
 def test_rules_are_the_registered_reward_learners_and_the_controls():
-    learners = [n for n in registry.names() if registry.get(n).lab_credit is not None]
+    """The lab's table names registered methods only, and every method but those that learn
+    no reward from preferences of their own (SAC, RUNE, MRN); the methods know nothing of it."""
+    from hprior_jax.lab import rules as lab_rules
+
+    assert set(registry.names()) - set(lab_rules.METHODS) == {"sac", "rune", "mrn"}
+    learners = [n for n in registry.names() if n in lab_rules.METHODS]
     assert ALL == learners + ["positional", "oracle"]
+    assert REFERENCE in ALL and set(lab_rules.OWN_PROGRAMS) == {"surf"}
+    assert rules()["prior"] == "attention" and rules()["prior_nrp"] == "attention_nrp"
     assert registry.REFERENCE not in ALL  # SAC learns no reward
     assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped", "prior_unlabelled",
                                    "rvar_unlabelled", "positional_unlabelled"]  # by name
@@ -108,6 +117,19 @@ def test_ablations_and_lambdas_are_rules_of_one_lab(data):
                        (["prior@x"], "RULE@LAMBDA"), (["prior", "prior"], "named twice")):
         with pytest.raises(ValueError, match=match):
             lab_config(dataclasses.replace(data, task="toy_point"), "smoke", bad)
+
+
+def test_surf_is_a_rule_of_its_own_program_at_its_presets_settings(data):
+    """The lab's table builds SURF's rule from `hprior train --algo surf`'s preset."""
+    from hprior_jax.agents.sac import SACConfig
+    from hprior_jax.lab.surf_round import SurfLabRule
+    from hprior_jax.methods.surf import surf_preset
+
+    cfg = lab_config(dataclasses.replace(data, task="toy_point"), "smoke", ["pebble", "surf"])
+    want = surf_preset("toy_point", "smoke", SACConfig())
+    assert cfg.credits == ("none", "own_program") and cfg.shared_rules == [0]
+    assert cfg.own_rules == (("surf", SurfLabRule(cfg=want["surf"],
+                                                  segment_len=want["pebble"].segment_len)),)
 
 
 def test_prior_settings_change_the_world_model_and_tag_the_rules_that_read_it(data):
@@ -554,7 +576,7 @@ def test_a_dataset_is_made_only_from_a_sac_run(tmp_path):
     from hprior_jax.lab import dataset as datasets
     from hprior_jax.runs.run_dir import prepare_run_dir
 
-    other = presets.train_preset("toy_point", registry.LAB_REFERENCE, "smoke", steps=200,
+    other = presets.train_preset("toy_point", REFERENCE, "smoke", steps=200,
                                  out=str(tmp_path / "pebble"))
     prepare_run_dir(other)  # its config only
     with pytest.raises(ValueError, match="--algo pebble run"):
@@ -635,7 +657,8 @@ def test_surf_rule_stores_longer_segments_and_its_teacher_judges_the_middle(data
     import jax.numpy as jnp
 
     from hprior_jax.lab.config import Episodes
-    from hprior_jax.methods.surf import SurfConfig, SurfLabRule
+    from hprior_jax.lab.surf_round import SurfLabRule
+    from hprior_jax.methods.surf import SurfConfig
 
     cfg = tiny(rules=("pebble",), credits=("none",), world_model=None)
     rule = SurfLabRule(cfg=SurfConfig(), segment_len=T)
@@ -659,7 +682,8 @@ def test_surf_rule_stores_longer_segments_and_its_teacher_judges_the_middle(data
 
 @pytest.mark.slow  # CI time (~40 s)
 def test_surf_rule_runs_beside_the_shared_program_and_reports_every_budget(data):
-    from hprior_jax.methods.surf import SurfConfig, SurfLabRule
+    from hprior_jax.lab.surf_round import SurfLabRule
+    from hprior_jax.methods.surf import SurfConfig
 
     rule = SurfLabRule(cfg=SurfConfig(), segment_len=T)
     cfg = tiny(rules=("pebble", "surf"), credits=("none", "own_program"),

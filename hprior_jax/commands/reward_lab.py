@@ -1,18 +1,31 @@
-"""`hprior reward-lab`: reward learning on a fixed dataset, every rule from the same labels."""
+"""`hprior reward-lab`: reward learning on a fixed dataset, every rule from the same labels;
+`hprior reward-lab report`: a lab's report rebuilt from its results.csv, or several labs'
+merged."""
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
 
+from hprior_jax.lab import rules as lab_rules
 from hprior_jax.methods import registry
+
+REPORT = "report"  # `hprior reward-lab report ...`; the lab itself takes no positional argument
+REPORT_HINT = (f"hprior reward-lab {REPORT} RESULTS_CSV... OUT_DIR rebuilds a lab's report from "
+               f"its results.csv, or merges several labs' (hprior reward-lab {REPORT} --help).")
 
 
 def reward_lab(argv: list[str]) -> int:
-    from hprior_jax.lab import dataset as datasets
-    from hprior_jax.lab.sweep import default_rules, rules
+    if argv[:1] == [REPORT]:
+        report(argv[1:])
+        return 0
+    return _lab(argv)
 
-    parser = _parser(datasets, default_rules(), rules())
+
+def _lab(argv: list[str]) -> int:
+    from hprior_jax.lab import dataset as datasets
+
+    parser = _parser(datasets, lab_rules.default_rules(), lab_rules.rules())
     args = parser.parse_args(argv)
     from hprior_jax.lab.contrasts import Contrast
     from hprior_jax.lab.sweep import check_arguments, lab_config, run_lab
@@ -63,7 +76,7 @@ def reward_lab(argv: list[str]) -> int:
         return 0
     if args.seeds < 10:
         print(f"warning: {args.seeds} seeds; the lab's comparisons want 10 or more (the seed "
-              f"shards of one lab merge: `python -m hprior_jax.lab.report`)", file=sys.stderr)
+              f"shards of one lab merge: `hprior reward-lab report`)", file=sys.stderr)
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     cfg = lab_config(data, args.preset, args.rules, seeds, args.budgets,
                      args.queries_per_round, args.feed, args.teacher, args.one_shot, args.lam,
@@ -98,7 +111,8 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                     "SAC run on the true reward, cached in $HPRIOR_LAB_CACHE), seeds and rules "
                     "vmapped in one program; reports held-out accuracy and correlation with the "
                     "true reward, with CIs and paired tests against "
-                    f"{registry.LAB_REFERENCE}.")
+                    f"{lab_rules.REFERENCE}.",
+        epilog=REPORT_HINT)
     parser.add_argument("--task", required=True)
     parser.add_argument("--preset", default="reduced", choices=("paper", "reduced", "smoke"),
                         help="the RL preset whose reward, schedule and world-model settings "
@@ -134,7 +148,7 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                         help="the lab's seeds are FIRST_SEED .. FIRST_SEED + SEEDS - 1: a "
                              "seed's cells do not depend on the others', so a lab too long for "
                              "one sitting runs as seed shards (--seeds 5 --first-seed 5, ...) "
-                             "merged by `python -m hprior_jax.lab.report A/results.csv "
+                             "merged by `hprior reward-lab report A/results.csv "
                              "B/results.csv OUT`")
     parser.add_argument("--budgets", nargs="+", type=int, default=[25, 100, 400])
     parser.add_argument("--queries-per-round", type=int, default=None,
@@ -152,7 +166,7 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                              "RULE[TAG]")
     parser.add_argument("--tag", default=None,
                         help="TAG of --prior-set (default: the settings); merge the reports "
-                             "of several labs with `python -m hprior_jax.lab.report "
+                             "of several labs with `hprior reward-lab report "
                              "A/results.csv B/results.csv OUT`")
     parser.add_argument("--no-world-model-cache", action="store_true",
                         help="train the seeds' world models even when a lab of the same "
@@ -168,4 +182,66 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                         help="go on from where a lab stopped in --out (Ctrl-C, a kill): "
                              "the same command plus --resume; its state is kept between "
                              "rounds (at least every 10 min and at every budget)")
+    return parser
+
+
+def report(argv: list[str]) -> Path:
+    """`hprior reward-lab report`: write the report of one or more results.csv; its path."""
+    from hprior_jax.lab.report import merge_results, write_report
+    from hprior_jax.lab.report_notes import merged_notes
+
+    parser = _report_parser()
+    args = parser.parse_args(argv)
+    pairs = [tuple(p.split(":")) for p in args.pairs]
+    if any(len(p) != 2 for p in pairs):
+        parser.error("write each pair as A:B")
+    if len(args.paths) < 2:
+        parser.error("give one or more results.csv and then the output folder")
+    try:
+        rows, differing = merge_results(args.paths[:-1], args.tags)
+    except ValueError as e:  # --tags not one per results.csv
+        parser.error(f"--tags: {e} ('' for none)")
+    if args.only:
+        missing = set(args.only) - {row["rule"] for row in rows}
+        if missing:
+            parser.error(f"--only: no rows of {sorted(missing)}")
+        rows = [row for row in rows if row["rule"] in args.only]
+    if differing:
+        print(f"{differing} rows found in several files differ in a metric: the first "
+              "file's are kept", file=sys.stderr)
+    notes = merged_notes(args.paths[:-1], args.paths[-1])
+    path = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts, notes,
+                        figures=not args.no_figures)
+    print(path)
+    return path
+
+
+def _report_parser() -> argparse.ArgumentParser:
+    from hprior_jax.lab.report import DEFAULT_TITLE
+
+    parser = argparse.ArgumentParser(
+        prog=f"hprior reward-lab {REPORT}",
+        description="Rebuild a reward-learning lab report from its raw results.csv, or merge "
+                    "the results.csv of several labs into one report: labs of the same dataset "
+                    "and seeds (their rules side by side) or the seed shards of one lab "
+                    "(`hprior reward-lab --first-seed`; their world-model diagnostics "
+                    "and ceiling notes are merged from the files beside each results.csv).")
+    parser.add_argument("paths", type=Path, nargs="+", metavar="RESULTS_CSV... OUT_DIR")
+    parser.add_argument("--title", default=DEFAULT_TITLE)
+    parser.add_argument("--pairs", nargs="+", default=(), metavar="A:B",
+                        help="also compare rule A with rule B (A − B, paired by seed), e.g. "
+                             "prior:positional prior:rvar")
+    parser.add_argument("--contrasts", nargs="+", default=(), metavar="A:B[@MARGIN]",
+                        help="pre-registered contrasts A − B (Holm over all of a metric; "
+                             "MARGIN, a number or C:D/K, adds an equivalence test), e.g. "
+                             "oracle~shift:rvar prior~shift:positional~shift@oracle~shift:rvar/2")
+    parser.add_argument("--tags", nargs="+", default=None, metavar="TAG",
+                        help="one per RESULTS_CSV: that lab's rules are reported as RULE[TAG] "
+                             "('' keeps the names), e.g. '' one-shot for a lab and its "
+                             "--one-shot copy, compared by --pairs rvar[one-shot]:rvar")
+    parser.add_argument("--only", nargs="+", default=None, metavar="RULE",
+                        help="report only these rules (names after --tags), e.g. pebble rvar "
+                             "pebble[one-shot] rvar[one-shot]")
+    parser.add_argument("--no-figures", action="store_true",
+                        help="tables only: no PNGs, and report.md links none")
     return parser

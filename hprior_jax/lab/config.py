@@ -16,7 +16,8 @@
 A rule may also take the shifted target form α_t·(R̂ + T·c) − c (`shifts`, RULE~shift), clip
 its targets, fit the prior on unlabelled segments too and have its own λ: ablations and a λ
 sweep run side by side as rules of one program. A method whose update has other shapes (SURF)
-runs in a program of its own (`OWN_PROGRAM`, its `MethodSpec.lab_rule`), same seeds.
+runs in a program of its own (`OWN_PROGRAM`), same seeds. Which rules exist and which credit
+each has: the rule table, `lab.rules`.
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ import jax
 import numpy as np
 from flax import struct
 
+from hprior_jax.lab.rules import OWN_PROGRAM
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
 from hprior_jax.pbrl.teacher import TeacherConfig
@@ -33,20 +35,9 @@ from hprior_jax.prior import world_model as wm
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
            "attention_no_own_step", "bisimulation")
-OWN_PROGRAM = "own_program"  # a method's rule that runs in a program of its own (its lab_rule)
 WORLD_MODEL_CREDITS = ("attention", "attention_nrp", "attention_no_own_step", "positional")
 NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
 BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
-CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
-# lab rules asked for by name: (credit, targets clipped, prior also on unlabelled segments).
-# The prior_* ones are `--algo prior` with a flag; the other two are prior_unlabelled's
-# controls, the same unlabelled segments under uniform credit (`--algo rvar
-# --rvar.unlabelled-segments N`) or positional credit (no method).
-ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False, False),  # exclude-own-step
-             "prior_clipped": ("attention", True, False),  # --prior.clip-targets
-             "prior_unlabelled": ("attention", False, True),  # --prior.unlabelled-segments N
-             "rvar_unlabelled": ("uniform", False, True),  # --rvar.unlabelled-segments N
-             "positional_unlabelled": ("positional", False, True)}
 UNLABELLED_SEGMENTS = 64  # the prior_unlabelled rule's N unless --prior-set sets it
 
 
@@ -63,7 +54,7 @@ class LabConfig:
     bisim_lam: float = 0.5  # λ_bisim of the bisim rule (BISIM's default)
     bisim_transitions: int = 4  # transitions per stored-pair row (BISIM's default)
     discount: float = 0.99  # γ of the bisimulation target (SAC's, as in BISIM)
-    own_rules: tuple = ()  # (rule, its method's lab rule object) of every OWN_PROGRAM rule
+    own_rules: tuple = ()  # (rule, lab.rules.own_rule's object) of every OWN_PROGRAM rule
     budgets: tuple[int, ...] = (25, 100, 400)
     queries_per_round: int = 10
     feed_type: str = "disagreement"

@@ -30,6 +30,7 @@ import numpy as np
 from hprior_jax import presets
 from hprior_jax.buffers.episodes import split_column
 from hprior_jax.envs import task_info
+from hprior_jax.lab import rules
 from hprior_jax.lab.npz_files import write_atomically
 from hprior_jax.methods import registry
 from hprior_jax.runs.build import build_engine, train
@@ -214,7 +215,7 @@ def _from_replay(task: str, replay, steps: int, seed: int, preset: str, source: 
                  t0: float, heldout_every: int, num_pairs: int) -> Dataset:
     """One seed's replay buffer (rows in step order, never wrapped) -> Dataset."""
     length = task_info(task).episode_length
-    segment_len = presets.train_preset(task, registry.LAB_REFERENCE, preset).pebble.segment_len
+    segment_len = presets.train_preset(task, rules.REFERENCE, preset).pebble.segment_len
     _check_steps(steps, length, heldout_every)
     rows = lambda x: np.asarray(x)[:steps]
     (tr_o, te_o), (tr_a, te_a), (tr_r, te_r) = split_episodes(

@@ -4,7 +4,7 @@ match the true reward, against the reference rule PEBBLE, at several label budge
 The lab's raw results are rows, one per (task, rule, budget, seed), holding the reward-quality
 metrics of `METRICS` measured on held-out data (other columns are carried along, not used).
 `write_report` turns them into summary.csv, results.csv, one plot per (task, metric) and
-report.md; `python -m hprior_jax.lab.report RESULTS_CSV OUT_DIR` rebuilds all of it
+report.md; `hprior reward-lab report RESULTS_CSV OUT_DIR` rebuilds all of it
 from a saved results.csv (several RESULTS_CSV: one report of several labs, `merge_results`).
 
 Statistical choices:
@@ -21,10 +21,8 @@ Statistical choices:
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import math
-import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -32,9 +30,8 @@ import numpy as np
 
 from hprior_jax.lab import contrasts as contrast_tests
 from hprior_jax.lab.metrics import METRIC_LABEL, METRICS
-from hprior_jax.lab.report_notes import merged_notes
 from hprior_jax.lab.report_figures import plot_metric, png_name
-from hprior_jax.methods.registry import LAB_REFERENCE as REFERENCE
+from hprior_jax.lab.rules import REFERENCE
 from hprior_jax.statistics import ALPHA, NAN, mean_ci, paired_comparison
 
 DEFAULT_TITLE = "Reward-learning lab"
@@ -340,58 +337,3 @@ def write_report(rows, out_dir, title: str = DEFAULT_TITLE, pairs=(), contrasts=
     report = out_dir / "report.md"
     report.write_text(_markdown(rows, summary, title, compared, tested, pools, notes, figures))
     return report
-
-
-def main(argv=None) -> Path:
-    parser = argparse.ArgumentParser(
-        prog="python -m hprior_jax.lab.report",
-        description="Rebuild a reward-learning lab report from its raw results.csv, or merge "
-                    "the results.csv of several labs into one report: labs of the same dataset "
-                    "and seeds (their rules side by side) or the seed shards of one lab "
-                    "(`hprior reward-lab --first-seed`; their world-model diagnostics "
-                    "and ceiling notes are merged from the files beside each results.csv).")
-    parser.add_argument("paths", type=Path, nargs="+", metavar="RESULTS_CSV... OUT_DIR")
-    parser.add_argument("--title", default=DEFAULT_TITLE)
-    parser.add_argument("--pairs", nargs="+", default=(), metavar="A:B",
-                        help="also compare rule A with rule B (A − B, paired by seed), e.g. "
-                             "prior:positional prior:rvar")
-    parser.add_argument("--contrasts", nargs="+", default=(), metavar="A:B[@MARGIN]",
-                        help="pre-registered contrasts A − B (Holm over all of a metric; "
-                             "MARGIN, a number or C:D/K, adds an equivalence test), e.g. "
-                             "oracle~shift:rvar prior~shift:positional~shift@oracle~shift:rvar/2")
-    parser.add_argument("--tags", nargs="+", default=None, metavar="TAG",
-                        help="one per RESULTS_CSV: that lab's rules are reported as RULE[TAG] "
-                             "('' keeps the names), e.g. '' one-shot for a lab and its "
-                             "--one-shot copy, compared by --pairs rvar[one-shot]:rvar")
-    parser.add_argument("--only", nargs="+", default=None, metavar="RULE",
-                        help="report only these rules (names after --tags), e.g. pebble rvar "
-                             "pebble[one-shot] rvar[one-shot]")
-    parser.add_argument("--no-figures", action="store_true",
-                        help="tables only: no PNGs, and report.md links none")
-    args = parser.parse_args(argv)
-    pairs = [tuple(p.split(":")) for p in args.pairs]
-    if any(len(p) != 2 for p in pairs):
-        parser.error("write each pair as A:B")
-    if len(args.paths) < 2:
-        parser.error("give one or more results.csv and then the output folder")
-    try:
-        rows, differing = merge_results(args.paths[:-1], args.tags)
-    except ValueError as e:  # --tags not one per results.csv
-        parser.error(f"--tags: {e} ('' for none)")
-    if args.only:
-        missing = set(args.only) - {row["rule"] for row in rows}
-        if missing:
-            parser.error(f"--only: no rows of {sorted(missing)}")
-        rows = [row for row in rows if row["rule"] in args.only]
-    if differing:
-        print(f"{differing} rows found in several files differ in a metric: the first "
-              "file's are kept", file=sys.stderr)
-    notes = merged_notes(args.paths[:-1], args.paths[-1])
-    report = write_report(rows, args.paths[-1], args.title, pairs, args.contrasts, notes,
-                          figures=not args.no_figures)
-    print(report)
-    return report
-
-
-if __name__ == "__main__":
-    main()

@@ -17,31 +17,19 @@ import numpy as np
 from hprior_jax import dir_lock, presets
 from hprior_jax.lab import resume as lab_resume
 from hprior_jax.lab import world_model_cache
-from hprior_jax.lab.config import (ABLATIONS, CONTROLS, NO_PRIOR, OWN_PROGRAM, UNLABELLED_SEGMENTS,
-                                   WORLD_MODEL_CREDITS, GivenLabels, LabConfig, check_budgets)
+from hprior_jax.lab.config import (NO_PRIOR, UNLABELLED_SEGMENTS, WORLD_MODEL_CREDITS, GivenLabels,
+                                   LabConfig, check_budgets)
 from hprior_jax.lab.dataset import Dataset
 from hprior_jax.lab.learn import Lab
 from hprior_jax.lab.metrics import reward_quality, uniform_credit_ceiling
 from hprior_jax.lab.npz_files import write_atomically
 from hprior_jax.lab.report import write_report
 from hprior_jax.lab.report_notes import report_notes, write_diagnostics
+from hprior_jax.lab.rules import ABLATIONS, OWN_PROGRAM, default_rules, own_rule, rules
 from hprior_jax.methods import registry
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
 from hprior_jax.pbrl.teacher import PRESETS as TEACHERS
-
-
-def rules() -> dict[str, str]:
-    """{rule: credit}: every registered method that learns a reward from preferences, in
-    the registry's order, then the lab's controls, then PRIOR's ablations."""
-    methods = {n: registry.get(n).lab_credit for n in registry.names()}
-    return {**{n: c for n, c in methods.items() if c is not None}, **CONTROLS,
-            **{n: credit for n, (credit, *_) in ABLATIONS.items()}}
-
-
-def default_rules() -> list[str]:
-    """The default sweep: every rule but the ablations."""
-    return [r for r in rules() if r not in ABLATIONS]
 
 
 SHIFTED = "~shift"  # RULE~shift: the rule with the shifted target form (prior/loss.py)
@@ -159,7 +147,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
     """The lab's settings from the RL preset's. `prior_settings` (FIELD=VALUE) change the
     proposed method's config (world-model size, training amount, ...); the rules that read the
     world model are then reported as RULE[TAG] (TAG: `tag`, or the settings), so labs of
-    several world models merge into one report (`lab.report` of several results.csv)."""
+    several world models merge into one report (`hprior reward-lab report`)."""
     known = rules()
     rule_names = list(rule_names or default_rules())
     parsed = _parsed_rules(rule_names)
@@ -200,7 +188,7 @@ def lab_config(data: Dataset, preset: str = "reduced", rule_names=None, seeds=20
         **({} if bisim is None else dict(bisim_lam=bisim.lam,
                                          bisim_transitions=bisim.transitions_per_pair)),
         discount=rl.sac.discount,
-        own_rules=tuple((r, registry.get(r).lab_rule(data.task, preset))
+        own_rules=tuple((r, own_rule(r, presets.train_preset(data.task, r, preset)))
                         for r, *_ in parsed if known[r] == OWN_PROGRAM),
         preference=PreferenceConfig(batch_size=p.reward_batch, max_epochs=p.reward_epochs,
                                     lr=p.reward_lr),

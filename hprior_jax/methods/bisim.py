@@ -69,5 +69,4 @@ def spec(name: str) -> MethodSpec:
         name=name, build=lambda cfg, kit: Pebble(cfg, kit, BisimPrior(cfg, kit)),
         sections={"pebble": PebbleConfig, "bisim": BisimConfig},
         preset=lambda task, preset, sac: {**pebble_preset(task, preset, sac),
-                                          "bisim": BisimConfig()},
-        lab_credit="bisimulation")
+                                          "bisim": BisimConfig()})

@@ -148,4 +148,4 @@ def mrn_preset(task: str, preset: str, sac) -> dict:
 
 def spec(name: str) -> MethodSpec:
     return MethodSpec(name=name, build=Mrn, sections={"pebble": PebbleConfig, "mrn": MrnConfig},
-                      preset=mrn_preset, lab_credit=None)
+                      preset=mrn_preset)

@@ -345,4 +345,4 @@ def masked_correlation(x: jax.Array, y: jax.Array, n: jax.Array) -> jax.Array:
 
 def spec(name: str) -> MethodSpec:
     return MethodSpec(name=name, build=Pebble, sections={"pebble": PebbleConfig},
-                      preset=pebble_preset, lab_credit="none")
+                      preset=pebble_preset)

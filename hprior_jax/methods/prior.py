@@ -300,7 +300,6 @@ def prior_preset(task: str, preset: str, sac: SACConfig) -> dict:
 
 
 _VARIANT = {"prior": "raw", "prior_nrp": "nrp"}
-_LAB_CREDIT = {"raw": "attention", "nrp": "attention_nrp"}
 
 
 def build(cfg, kit, variant: str) -> Pebble:
@@ -310,5 +309,4 @@ def build(cfg, kit, variant: str) -> Pebble:
 def spec(name: str) -> MethodSpec:
     return MethodSpec(name=name, build=partial(build, variant=_VARIANT[name]),
                       sections={"pebble": PebbleConfig, "prior": PriorConfig},
-                      preset=prior_preset, has_world_model=True,
-                      lab_credit=_LAB_CREDIT[_VARIANT[name]])
+                      preset=prior_preset, has_world_model=True)

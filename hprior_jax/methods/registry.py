@@ -28,7 +28,6 @@ REFERENCE = "sac"  # the normaliser of Tables 6-7
 PROPOSED = "prior"  # the method the paired t-tests compare every other one with
 DEFAULT = "sac"  # `hprior train` without --algo
 GRID_DEFAULT = ("sac", "pebble", "prior")  # `hprior grid` without --algos
-LAB_REFERENCE = "pebble"  # `hprior reward-lab` compares every rule with it
 
 
 @dataclass(frozen=True)
@@ -41,19 +40,6 @@ class MethodSpec:
     preset: Callable = lambda task, preset, sac: {}
     """(task, preset name, the preset's SACConfig) -> RunConfig field overrides."""
     has_world_model: bool = False  # attention maps need one
-    lab_credit: str | None = None
-    """How the method's reward update enters the reward-learning lab (`hprior reward-lab`): the
-    credit α of its prior term (hprior_jax.lab.config.CREDITS; "none" = cross-entropy only;
-    "bisimulation" = BISIM's bisimulation term instead of a prior); "own_program" = it trains
-    in a program of its own shapes, built by `lab_rule`. None: not a lab rule (SAC learns no
-    reward; RUNE learns PEBBLE's reward and changes only the agent's; MRN's meta step needs
-    the agent's critic)."""
-    lab_rule: Callable | None = None
-    """(task, preset name) -> the method's lab rule (`lab_credit="own_program"`): a hashable
-    object with `init(key, capacity, obs_size, act_size, lab_cfg) -> cell` (a pytree whose
-    `reward` field is the ensemble's parameters) and `round(cell, num_queries, first, train,
-    mean_return, *, lab, queries, feed, episode_length) -> (cell, metrics)`; the lab
-    (hprior_jax.lab.learn) vmaps or maps it over seeds."""
 
 
 def names() -> list[str]:

@@ -75,5 +75,4 @@ def spec(name: str) -> MethodSpec:
         name=name, build=lambda cfg, kit: Pebble(cfg, kit, DisagreementBonus(cfg)),
         sections={"pebble": PebbleConfig, "rune": RuneConfig},
         preset=lambda task, preset, sac: {**pebble_preset(task, preset, sac),
-                                          "rune": RuneConfig()},
-        lab_credit=None)
+                                          "rune": RuneConfig()})

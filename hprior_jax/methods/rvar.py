@@ -31,7 +31,7 @@ class RvarConfig:
     unlabelled_segments: int = 0
     """Not in the paper (0 is off): the uniform prior also on this many unlabelled segments
     of the replay buffer, drawn afresh each round, with the same λ (as
-    --prior.unlabelled-segments; the lab's rule `rvar_unlabelled`)."""
+    --prior.unlabelled-segments)."""
 
     def __post_init__(self):
         if self.lam < 0:
@@ -77,5 +77,4 @@ def rvar_preset(task: str, preset: str, sac: SACConfig) -> dict:
 
 def spec(name: str) -> MethodSpec:
     return MethodSpec(name=name, build=lambda cfg, kit: Pebble(cfg, kit, UniformPrior(cfg, kit)),
-                      sections={"pebble": PebbleConfig, "rvar": RvarConfig}, preset=rvar_preset,
-                      lab_credit="uniform")
+                      sections={"pebble": PebbleConfig, "rvar": RvarConfig}, preset=rvar_preset)
