@@ -102,7 +102,7 @@ def task_class(name: str) -> type[Task]:
 
 
 # XLA level 1 instead of XLA's own (3) where it measured a gain (benchmarks/README.md,
-# "compile_level"; benchmarks/results/compile_level.csv): cheetah_run's and quadruped_walk's
+# "compile_level"; benchmarks/results/runs/compile_level.csv): cheetah_run's and quadruped_walk's
 # first env step comes sooner, their chunks at the same speed. Not walker_walk (its evaluation
 # runs slower at level 1) nor MetaWorld (its steps run slower).
 _DMC_LEVELS = {"cheetah_run": 1, "quadruped_walk": 1}

@@ -19,8 +19,8 @@ FLAG = "--xla_cpu_use_fusion_emitters=false"
 # hprior_jax/networks/mlp.py; this flag did not prevent it). Kept because every test and
 # measurement ran with it. It costs nothing measurable on jaxlib 0.10.2: XLA's CPU dots still
 # use both cores with it (a 2048^2 matmul chain runs on 1.94 cores either way), and the SAC
-# update takes the same time with =false and =true (`python -m benchmarks.sac_update`,
-# results/sac_update.csv, column xla_eigen).
+# update takes the same time with =false and =true (`python -m benchmarks.updates.sac_update`,
+# results/updates/sac_update.csv, column xla_eigen).
 NO_EIGEN_THREADS = "--xla_cpu_multi_thread_eigen=false"
 
 

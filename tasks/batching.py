@@ -2,9 +2,9 @@
 
 XLA on CPU steps a vmapped DM Control port more slowly per env at a wide batch than at a
 narrow one. Batch 128, env steps/s, one vmap against 8 groups of 16 stepped in turn with
-`lax.map` (this project's 2-core CPU, `python -m benchmarks.env_throughput
+`lax.map` (this project's 2-core CPU, `python -m benchmarks.ports.env_throughput
 --groups none 16`): walker 535 -> 1908, cheetah 9311 -> 15505, quadruped 1436 -> 2512
-(benchmarks/results/env_throughput_groups.csv). The MetaWorld ports, whose solver is already
+(benchmarks/results/ports/env_throughput_groups.csv). The MetaWorld ports, whose solver is already
 capped at 5 iterations, gained nothing at batch 64 (0.70-1.42x across the six tasks, mostly
 within run-to-run noise: `metaworld_throughput --group none|16`), so a task opts in with
 `Task.cpu_group`. Each env runs the same operations either way (MJX's solver loops under

@@ -6,7 +6,7 @@ import pytest
 
 import benchmarks._timing as timing
 from benchmarks._timing import best_seconds, roofline
-from benchmarks.end_to_end import perf_totals
+from benchmarks.runs.end_to_end import perf_totals
 
 
 def test_perf_totals_sums_one_seed_and_every_part(tmp_path):
@@ -52,7 +52,7 @@ def test_write_rows_appends_to_kept_rows_with_new_columns(tmp_path):
 
 
 def test_op_profile_maps_xla_ops_to_their_jax_source():
-    from benchmarks.op_profile import matmul_ops, op_class, op_sources, source_of
+    from benchmarks.updates.op_profile import matmul_ops, op_class, op_sources, source_of
 
     hlo = ('  %fusion.3 = f32[4,8]{1,0} fusion(%p0), kind=kLoop, metadata={op_name='
            '"jit(run)/while/body/closed_call/transpose(jvp(Model))/layers/self_attn/bind,jnd->bnij/transpose" '
@@ -79,7 +79,7 @@ def test_op_profile_maps_xla_ops_to_their_jax_source():
 
 
 def _gpu_suite_tiny(out, parts, extra=()):
-    """`python -m benchmarks.gpu_suite --scale tiny --parts ... [extra]` in a child (the suite
+    """`python -m benchmarks.runs.gpu_suite --scale tiny --parts ... [extra]` in a child (the suite
     sets PyTorch's default device) -> {part: rows}."""
     import csv
     import os
@@ -88,7 +88,7 @@ def _gpu_suite_tiny(out, parts, extra=()):
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
-    done = subprocess.run([sys.executable, "-m", "benchmarks.gpu_suite", "--scale", "tiny",
+    done = subprocess.run([sys.executable, "-m", "benchmarks.runs.gpu_suite", "--scale", "tiny",
                            "--parts", *parts, "--out", str(out), *extra], cwd=root, capture_output=True,
                           text=True, env=dict(os.environ, PYTHONPATH=str(root)), timeout=900)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
@@ -111,11 +111,11 @@ def test_gpu_suite_measures_env_throughput_at_tiny_sizes_on_cpu(tmp_path):
 
 @pytest.mark.slow  # 65-95 s: a benchmark script's check, run before a benchmark
 def test_mjx_warp_benchmark_steps_like_c_mujoco(tmp_path):
-    """benchmarks.mjx_warp on the JAX side alone (warp-lang is not a dependency): the port's
+    """benchmarks.ports.mjx_warp on the JAX side alone (warp-lang is not a dependency): the port's
     model under `mjx.step` follows C MuJoCo's `mj_step` from the same states and controls."""
     import csv
 
-    from benchmarks import mjx_warp
+    from benchmarks.ports import mjx_warp
 
     out = tmp_path / "mjx_warp.csv"
     mjx_warp.main(["--tasks", "cheetah_run", "--batch", "2", "--steps", "2", "--repeats", "1",
@@ -146,7 +146,7 @@ def test_gpu_carry_keeps_what_the_dm_control_tasks_load(tmp_path):
     import subprocess
     import sys
 
-    from benchmarks import gpu_carry
+    from benchmarks.tooling import gpu_carry
 
     assert gpu_carry.locked_version("mujoco") == gpu_carry.locked_version("mujoco-mjx")
     assert all(gpu_carry.locked_version(name) for name in gpu_carry.WHEELS)
@@ -166,7 +166,7 @@ def test_gpu_carry_packs_a_wheel_in_two_halves_that_unpack_whole(tmp_path):
     import io
     import zipfile
 
-    from benchmarks import gpu_carry
+    from benchmarks.tooling import gpu_carry
 
     wheel = tmp_path / "pkg-1.0-py3-none-any.whl"
     files = {"pkg/__init__.py": b"x = 1\n", "pkg/bin/lib.so": bytes(range(256)) * 400,
@@ -187,7 +187,7 @@ def test_bpref_runner_shims_what_bpref_needs_and_maps_our_settings(tmp_path):
     """A stand-in for BPref's train_PEBBLE.py records what the runner gives each process:
     numpy's old aliases, the reward model moved off "cuda", metaworld's old module, one
     thread, its own seed and our preset's settings as hydra overrides."""
-    from benchmarks.bpref_end_to_end import bpref_overrides, run_bpref
+    from benchmarks.runs.bpref_end_to_end import bpref_overrides, run_bpref
 
     bpref = tmp_path / "bpref"
     (bpref / "custom_dmc2gym").mkdir(parents=True)

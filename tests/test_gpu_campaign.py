@@ -1,5 +1,5 @@
-"""benchmarks/gpu_campaign.py at its tiny scale on toy data: every part writes complete files,
-the lab's rounds read part 1's world models, and a budget too small drops parts with a
+"""benchmarks/research/gpu_campaign.py at its tiny scale on toy data: every part writes complete
+files, the lab's rounds read part 1's world models, and a budget too small drops parts with a
 message instead of crashing. In-process, without the watchdog (`--grace-s 0`)."""
 import csv
 import dataclasses
@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from benchmarks import gpu_campaign as gc
-from benchmarks._gpu_campaign_world_model import residual_vs_reward_change
+from benchmarks.research import gpu_campaign as gc
+from benchmarks.research._gpu_campaign_world_model import residual_vs_reward_change
 from hprior_jax.lab.dataset import Dataset, heldout_pairs, split_episodes
 
 # slow: the campaign at toy sizes takes minutes; run it (-m slow) before a GPU session

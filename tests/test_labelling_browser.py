@@ -3,8 +3,8 @@
 sees both clips play, the goal line, the speed and step controls, answers that wait until
 both clips have played through, answers with a click and with a key, reloads and finds its
 progress.
-The screenshot lands in the test's temporary folder (tests write nothing else); the tracked
-benchmarks/results/labelling_page.png is a copy of one, refreshed by hand."""
+The screenshot lands in the test's temporary folder (tests write nothing else); no copy is
+tracked (benchmarks/results/runs/labelling_human_run.png shows the page in a live run)."""
 import shutil
 import time
 

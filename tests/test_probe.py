@@ -1,4 +1,4 @@
-"""The critical-event probe (hprior_jax/lab/probe.py): where the next state depends on one
+"""The critical-event probe (benchmarks/research/lab_probe.py): where the next state depends on one
 earlier action only, a trained world model's α must find that action's step.
 
 -m slow: the world model trains for 3000 updates (minutes on a CPU). The data side is fast."""
@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from hprior_jax.lab.probe import ProbeConfig, probe_episodes, run_probe
+from benchmarks.research.lab_probe import ProbeConfig, probe_episodes, run_probe
 
 
 def test_probe_episodes_reveal_the_gated_action_later():
@@ -31,7 +31,8 @@ def test_the_every_step_control_reveals_each_action_delay_steps_later():
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
-    "a finding, 2026-12-01 (benchmarks/results/probe/): the reduced-size world model after "
+    "a finding, 2026-12-01 (benchmarks/results/research/probe/): the reduced-size world model "
+    "after "
     "3000 updates does not learn the reveal (MSE 0.3066 vs 0.3068 predicting 0) and α puts "
     "0.005 on t* (uniform 0.02) and 0.63 on the last 8 steps. Strict: a fix makes it XPASS, "
     "which fails until this mark goes"))

@@ -3,7 +3,7 @@
 Structural, not timed: the optimized program of a training chunk must not copy, select over
 or otherwise rebuild a buffer-sized array; the only ops that produce one are the in-place
 inserts (dynamic-update-slice) and the loop/branch plumbing that passes it through. A copy
-per step made a 1M-row run 4-20x slower than a 20k-row one (benchmarks/replay_capacity.py).
+per step made a 1M-row run 4-20x slower than a 20k-row one (benchmarks/runs/replay_capacity.py).
 """
 import re
 

@@ -1,4 +1,5 @@
-"""The PyTorch world-model reference of benchmarks/world_model_update.py computes our update.
+"""The PyTorch world-model reference of benchmarks/updates/world_model_update.py computes our
+update.
 
 Runs only where the `.[bench]` extra (torch) is installed; the benchmark repeats the loss and
 gradient-norm check at the sizes it times."""
@@ -11,7 +12,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from benchmarks._torch_world_model import TorchDynamicsUpdate  # noqa: E402
+from benchmarks.updates._torch_world_model import TorchDynamicsUpdate  # noqa: E402
 from hprior_jax.prior import world_model as wm  # noqa: E402
 
 CFG = wm.WorldModelConfig(obs_size=5, act_size=2, obs_hidden=(16, 16), embed_dim=16, num_heads=2,

@@ -21,5 +21,4 @@ report              the report against the reference rule at each label budget (
                     reward-lab report` rebuilds it, or merges several labs')
 report_figures      the report's figures: each metric against the label budget
 report_notes        the paragraphs a report shows first (does the world model predict?)
-probe               a critical-event probe of the world model's credit α (synthetic data)
 """

@@ -25,7 +25,7 @@ DROPOUT_BITS = get_args(DropoutBits)
 
 
 def silu_tanh(x: jax.Array) -> jax.Array:
-    with jax.named_scope("silu"):  # profiles (benchmarks.op_profile) find it by this name
+    with jax.named_scope("silu"):  # profiles (benchmarks.updates.op_profile) find it by this name
         return x * (0.5 * jnp.tanh(0.5 * x) + 0.5)
 
 

@@ -95,8 +95,8 @@ class RewardNet(nn.Module):
         fan_in, lead = x.shape[-1], x.shape[:-1]
         # Rows flattened to one 2-D matmul per layer: on XLA CPU the [B, T, d] form under the
         # members' vmap made a reward-learning step at BPref's sizes 1.5-1.6x slower (315 ms
-        # before, 192 and 209 ms after in two runs; benchmarks/reward_update.py,
-        # results/reward_update*.csv). Same arithmetic per row.
+        # before, 192 and 209 ms after in two runs; benchmarks/updates/reward_update.py,
+        # results/updates/reward_update*.csv). Same arithmetic per row.
         x = x.reshape(-1, fan_in)
         for width in self.cfg.hidden_sizes:
             x = nn.Dense(width, kernel_init=torch_kernel_init, bias_init=torch_bias_init(fan_in))(x)

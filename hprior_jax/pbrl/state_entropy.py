@@ -25,7 +25,7 @@ def knn_distance(states: jax.Array, buffer: jax.Array, count: jax.Array, k: int 
     Squared distances are |s|^2 + |r|^2 - 2 s.r (one matmul per chunk at full float32
     precision, clamped at 0) rather than BPref's norm of the differences, which XLA on a CPU
     computes as a [B, chunk, d] broadcast and a reduction over d: the whole call runs 2.2-2.3x
-    faster so (benchmarks/state_entropy.py, 1k-10k stored states); the distances differ by
+    faster so (benchmarks/updates/state_entropy.py, 1k-10k stored states); the distances differ by
     float32 rounding relative to |s|^2 (the benchmark's `max_rel_diff` against BPref's
     formula). The k+1 nearest are chosen on squared distances and the root is taken of the
     one returned.

@@ -102,13 +102,14 @@ class WorldModelConfig:
     latent_coef: float = 1.0
     next_obs_coef: float = 1.0
     # Unrolled layers: a dynamics update measured 1.27x faster than under the layer scan at
-    # the paper size and 1.13x at the reduced one (benchmarks/results/world_model_update.csv);
-    # compiling takes about twice as long at the paper size.
+    # the paper size and 1.13x at the reduced one
+    # (benchmarks/results/updates/world_model_update.csv); compiling takes about twice as long
+    # at the paper size.
     unroll_layers: bool = True
     # Where dropout's random bits come from (the same Bernoulli masks in distribution; each a
     # different random stream): "hash" (networks.elementwise.Dropout) fuses them into the op
     # that applies the mask; "rbg" (XLA's RngBitGenerator) and "threefry" (the key itself)
-    # write them to memory first. benchmarks/results/world_model_update.csv times all three.
+    # write them to memory first. benchmarks/results/updates/world_model_update.csv times all three.
     dropout_rng: DropoutRng = "hash"
     # What the head predicts (`predict_next`): "state" (TWM and the paper: ẑ_{t+1} itself) or
     # "delta", an option neither has: the change from z_t, decoded as the change from s_t.

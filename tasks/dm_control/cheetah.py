@@ -7,7 +7,7 @@ joints uniform in their range, then 200 zero-control settling substeps, as dm_co
 first substep's step2 reads the drawn pose, dm_control's the default one: the same
 distribution, not the same draw).
 
-Parity (`python -m benchmarks.dm_control_parity --tasks cheetah_run`): same state, obs within
+Parity (`python -m benchmarks.ports.dm_control_parity --tasks cheetah_run`): same state, obs within
 3.9e-7, reward within 4.1e-8; same actions from dm_control's reset, return within 2.6e-7
 over 20 steps, 5.5e-6 over 100; random-policy return 2.88 vs 3.44 (10 episodes). Details:
 docs/ports/dm_control.md.
@@ -27,7 +27,7 @@ TIME_LIMIT = 10.0
 SETTLE_STEPS = 200
 # MJX's contact cap (tasks.physics.with_max_contacts): 16 candidate floor contacts; C MuJoCo
 # held at most 6 at once over 60 episodes of random, bang-bang and held actions
-# (`python -m benchmarks.env_profile --census-counts`; on its back, 4); 8 steps 1.7x faster
+# (`python -m benchmarks.ports.env_profile --census-counts`; on its back, 4); 8 steps 1.7x faster
 # at batch 128
 MAX_CONTACTS = 8
 

@@ -82,7 +82,7 @@ def floor_contacts_only(model: mujoco.MjModel) -> mujoco.MjModel:
     MJX allocates a contact slot for every candidate pair on every step, active or not
     (quadruped: 191 slots and 316 constraint rows, 35 and 160 without the self pairs), while
     C MuJoCo on dm_control's tasks never made a self contact in 20 episodes of random and
-    bang-bang actions (`python -m benchmarks.env_profile --census`)."""
+    bang-bang actions (`python -m benchmarks.ports.env_profile --census`)."""
     model = copy.copy(model)
     contype, conaffinity = model.geom_contype.copy(), model.geom_conaffinity.copy()
     floor = np.flatnonzero(model.geom_bodyid == 0)

@@ -8,7 +8,7 @@ steps. Reset: a uniform random orientation, hinges at 0, dropped to dm_control's
 non-contacting height, computed in closed form (`non_contacting_height`) instead of its 1 cm
 search.
 
-Parity (`python -m benchmarks.dm_control_parity --tasks quadruped_walk`): same state, obs
+Parity (`python -m benchmarks.ports.dm_control_parity --tasks quadruped_walk`): same state, obs
 within 4.1e-4, reward within 8.3e-8; reset height equal to dm_control's search on 200 of 200
 orientations; same actions, return within 2.3e-4 over 20 steps; returns are bimodal (upright
 or not): zero-action episodes upright at step 300, 0.217 vs 0.183 of 60 resets. Details:
@@ -31,7 +31,7 @@ WALK_SPEED = 0.5
 HEIGHT_STEP = 0.01  # dm_control's increment in _find_non_contacting_height
 # MJX's contact cap (tasks.physics.with_max_contacts): 35 candidate floor contacts; C MuJoCo
 # held at most 6 at once over 60 episodes of random, bang-bang and held actions
-# (`python -m benchmarks.env_profile --census-counts`); 8 steps 2.1x faster at batch 128
+# (`python -m benchmarks.ports.env_profile --census-counts`); 8 steps 2.1x faster at batch 128
 MAX_CONTACTS = 8
 
 

@@ -1,5 +1,5 @@
 """Parity of a DM Control port against dm_control itself (C MuJoCo): the helpers of
-`python -m benchmarks.dm_control_parity` and tests/tasks/test_dm_control_tasks.py.
+`python -m benchmarks.ports.dm_control_parity` and tests/tasks/test_dm_control_tasks.py.
 
   same_data    our observation and reward on dm_control's own MjData (`obs_reward_check`);
   same_state   C `mj_forward` and `mjx.forward` on the same state (`same_state_check`), the

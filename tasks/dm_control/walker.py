@@ -7,7 +7,7 @@ stand (5 move + 1) / 6. Control timestep 0.025 s = 10 substeps, 25 s -> 1000 ste
 `rooty` uniform in [-pi, pi], limited hinges uniform in their range, zero velocity, an
 actuation-free forward, no settling (dm_control's distribution, jax.random's stream).
 
-Parity (`python -m benchmarks.dm_control_parity --tasks walker_walk`): same state, obs within
+Parity (`python -m benchmarks.ports.dm_control_parity --tasks walker_walk`): same state, obs within
 1.8e-6, reward within 1.5e-7; same actions from dm_control's reset, return within 3.0e-5
 over 20 steps (chaos parts the trajectories after that); random-policy return 32.1 vs 32.4
 (10 episodes). Details: docs/ports/dm_control.md.
@@ -29,7 +29,7 @@ STAND_HEIGHT = 1.2
 WALK_SPEED = 1.0
 # No MJX contact cap (tasks.physics.with_max_contacts): of 14 candidate floor contacts (7
 # capsules, 2 each) C MuJoCo held up to 10 at once in 60 episodes of random, bang-bang and
-# held actions (`python -m benchmarks.env_profile --census-counts`), and a cap of 10 stepped
+# held actions (`python -m benchmarks.ports.env_profile --census-counts`), and a cap of 10 stepped
 # only 1.17x faster at batch 128 (12: no gain), too little for so thin a margin
 MAX_CONTACTS = None
 

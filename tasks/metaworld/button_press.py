@@ -5,7 +5,7 @@ the box's front face. Contacts (13 pairs): claws/pads x the cap (a box) and x th
 the wrist (a box) x the button's rod, flange and cap and x the box as one block; the cap x
 the box's front face (a plane).
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks button_press [--wrist box]`): the
+Parity (`python -m benchmarks.ports.metaworld_dynamics --tasks button_press [--wrist box]`): the
 registered scene (the wrist as convex pieces of metaworld's wrist mesh, every contact slot)
 meets all four targets at 100 episodes of metaworld's scripted policy (return x1.025, success
 100% vs 100%, button 0.4 cm deeper, hand-mocap x1.02). `wrist="box"` (the wrist as its
@@ -41,7 +41,8 @@ class ButtonPress(SawyerTask):
     # the box wrist keeps the 18 deepest contacts per condim group
     # (tasks.physics.with_max_contacts): metaworld's scripted policy on that scene left at
     # most 16 of its 18 condim-3 and 9 of its 32 condim-4 slots active (`python -m
-    # benchmarks.metaworld_dynamics --wrist box --sides port --max-contacts none`, 20 episodes)
+    # benchmarks.ports.metaworld_dynamics --wrist box --sides port --max-contacts none`,
+    # 20 episodes)
     wrist_caps = {"box": 18}
     scene = SceneSpec(
         xml="sawyer_button_press.xml",

@@ -3,7 +3,7 @@ policy drives, for 500 steps, metaworld's env (`run_metaworld`), the MJX port
 (`run_port`) or the port's scene stepped by C MuJoCo (`run_port_c`), and `targets` checks the
 port against metaworld (return ratio in [0.9, 1.1]; last-step success within 15 points;
 object excursion beyond its range at most metaworld's + 1 cm or 0.05 rad; hand-mocap
-distance ratio in [0.7, 1.3]). The helpers of `python -m benchmarks.metaworld_dynamics` and
+distance ratio in [0.7, 1.3]). The helpers of `python -m benchmarks.ports.metaworld_dynamics` and
 tests/tasks/test_metaworld_dynamics.py; imported only by tests and benchmarks.
 """
 from __future__ import annotations

@@ -4,7 +4,7 @@ Contacts (13 pairs): the 4 gripper geoms x the 3 handle cylinders of `door_link`
 capsules), and the door panel x the safe's side wall (the door's stop). The observed handle
 pose is that of metaworld's visual mesh geom "handle", recomputed from `door_link`'s pose.
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks door_open`, 20 episodes a side):
+Parity (`python -m benchmarks.ports.metaworld_dynamics --tasks door_open`, 20 episodes a side):
 return 4198 vs 4485 (x0.94), success at step 500 90% vs 100%, door down to -1.80 vs -1.82
 rad, hand-mocap x1.13: all four targets met. Same states: observation within 1.2e-6, reward
 within 1.6e-6. Details: docs/ports/metaworld.md.
@@ -29,8 +29,8 @@ class DoorOpen(SawyerTask):
     object_joint = "doorjoint"
     # MJX keeps the 16 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 4 of its 4 condim-3 and 12 of its 24
-    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts
-    # none`, 20 episodes)
+    # condim-4 slots active (`python -m benchmarks.ports.metaworld_dynamics --sides port
+    # --max-contacts none`, 20 episodes)
     max_contacts = 16
     scene = SceneSpec(
         xml="sawyer_door_pull.xml",

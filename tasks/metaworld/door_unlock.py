@@ -4,7 +4,7 @@ Contacts (5 pairs): the 4 gripper geoms and the wrist (a convex hull of 32 of th
 gripper-base mesh's points) x the lock lever box of `lock_link`; in metaworld's scripted
 episodes the lever touches nothing but the wrist. The door is fixed in this scene.
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks door_unlock`): 20 episodes a side,
+Parity (`python -m benchmarks.ports.metaworld_dynamics --tasks door_unlock`): 20 episodes a side,
 return 4406 vs 4433 (x0.99), success at step 500 100% vs 100%, hand-mocap x0.93; the lever
 passing its upper stop is a rare event in metaworld too (12 of 100 episodes), so the
 excursion target misses over 20 episodes; over 100 (`--episodes 100 --seed 1`) all four

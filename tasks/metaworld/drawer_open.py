@@ -4,7 +4,7 @@ Contacts: the 4 gripper geoms x the 3 handle capsules of `drawer_link` (12 pairs
 stops on its soft joint limit alone, as in metaworld. Reward, success and the 39-D
 observation are metaworld's (drawer handle at `drawer_link` - 0.16 y).
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks drawer_open`, metaworld's scripted
+Parity (`python -m benchmarks.ports.metaworld_dynamics --tasks drawer_open`, metaworld's scripted
 policy, 20 episodes a side): return 4031 vs 4049 (x1.00), success at step 500 100% vs 100%,
 drawer out to -0.2025 vs -0.2025, hand-mocap x1.00: all four targets met. Same states:
 observation within 1.1e-6, reward within 6.7e-6. Details: docs/ports/metaworld.md.
@@ -30,7 +30,8 @@ class DrawerOpen(SawyerTask):
     object_joint = "goal_slidey"
     # MJX keeps the 8 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 4 of its 24 (condim-4) slots active
-    # (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts none`, 20 episodes)
+    # (`python -m benchmarks.ports.metaworld_dynamics --sides port --max-contacts none`,
+    # 20 episodes)
     max_contacts = 8
     scene = SceneSpec(
         xml="sawyer_drawer.xml",

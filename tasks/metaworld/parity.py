@@ -1,5 +1,5 @@
 """State and episode parity of a MetaWorld port against metaworld (C MuJoCo): the helpers of
-`python -m benchmarks.metaworld_parity` and tests/tasks/test_metaworld_tasks.py.
+`python -m benchmarks.ports.metaworld_parity` and tests/tasks/test_metaworld_tasks.py.
 
   * `reward_parity`: metaworld states (its scripted policy with noise, and random actions)
     loaded into the port: the 18 current observation values, the dense reward, success;

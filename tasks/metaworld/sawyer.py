@@ -91,7 +91,7 @@ class SawyerTask(Task):
         tolerance 1e-10; MJX runs its solver loop until the tolerance is met, i.e. nearly all
         50 every substep. Newton converges in a few iterations on these small contact sets;
         5 / 10 roughly doubled batch-64 throughput on drawer_open and kept its scripted-policy
-        success and drift (benchmarks/metaworld_parity.py). Pass 50, 50 for metaworld's.
+        success and drift (benchmarks/ports/metaworld_parity.py). Pass 50, 50 for metaworld's.
 
         wrist="mesh" or keep_cylinders=True build metaworld's exact shapes for C MuJoCo
         diagnostics (`mj_model`); MJX cannot collide them, so `model` (the MJX step's) is

@@ -7,7 +7,7 @@ floor (a puck pushed off the table lands there, as in metaworld). Reset: the puc
 drawn away from the goal as metaworld does, at the height and orientation it settles to
 during the hand reset.
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks sweep_into`): 20 episodes a side,
+Parity (`python -m benchmarks.ports.metaworld_dynamics --tasks sweep_into`): 20 episodes a side,
 return 2358 vs 2160 (x1.09), success at step 500 40% vs 35%, hand-mocap x0.93; 100 episodes
 (`--episodes 100 --seed 1`): x0.93, 27% vs 31%, x1.01; all four targets met. Same states:
 observation within 1.2e-6, reward within 8.2e-6. Details: docs/ports/metaworld.md.
@@ -36,7 +36,8 @@ class SweepInto(SawyerTask):
     policy_reads_goal = True
     # MJX keeps the 72 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 56 of its 104 (condim-4) slots active
-    # (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts none`, 20 episodes)
+    # (`python -m benchmarks.ports.metaworld_dynamics --sides port --max-contacts none`,
+    # 20 episodes)
     max_contacts = 72
     scene = SceneSpec(
         xml="sawyer_table_with_hole.xml",

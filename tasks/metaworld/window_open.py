@@ -6,7 +6,7 @@ pane's stile x the frame post (its end stop). metaworld's reset quirk is kept: t
 reward's margin reads the handle where the *previous* random placement put it, so a second
 placement is drawn from the same range for it.
 
-Parity (`python -m benchmarks.metaworld_dynamics --tasks window_open`, 20 episodes a side):
+Parity (`python -m benchmarks.ports.metaworld_dynamics --tasks window_open`, 20 episodes a side):
 return 2216 vs 2219 (x1.00), success at step 500 100% vs 100%, slide max 0.2030 vs 0.2033,
 hand-mocap x0.84: all four targets met. Same states: observation within 1.2e-6, reward
 within 2.2e-6. Details: docs/ports/metaworld.md.
@@ -33,8 +33,8 @@ class WindowOpen(SawyerTask):
     object_joint = "window_slide"
     # MJX keeps the 12 deepest contacts per condim group (tasks.physics.with_max_contacts):
     # metaworld's scripted policy on this port left at most 8 of its 10 condim-3 and 6 of its 24
-    # condim-4 slots active (`python -m benchmarks.metaworld_dynamics --sides port --max-contacts
-    # none`, 20 episodes)
+    # condim-4 slots active (`python -m benchmarks.ports.metaworld_dynamics --sides port
+    # --max-contacts none`, 20 episodes)
     max_contacts = 12
     scene = SceneSpec(
         xml="sawyer_window_horizontal.xml",

@@ -2,7 +2,7 @@
 drives metaworld's env and the MJX port; the port must *move* like metaworld, not only score
 like it. Fast: one short MJX run of button_press, a short C MuJoCo run of drawer_open's
 scene, and the constraint weights the scenes keep; the full six-task comparison (20 episodes
-a side, 500 steps) is the slow test and `python -m benchmarks.metaworld_dynamics`."""
+a side, 500 steps) is the slow test and `python -m benchmarks.ports.metaworld_dynamics`."""
 import numpy as np
 import pytest
 

@@ -1,0 +1,1 @@
+"""The task ports against their references: throughput, profiles, parity, MetaWorld dynamics."""

@@ -1,0 +1,1 @@
+"""Device tooling: what a lent GPU machine lacks, packed to carry."""

@@ -1,0 +1,1 @@
+"""One update against its reference (mostly PyTorch): SAC, reward, world model, MRN, entropy."""
