@@ -100,10 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except OSError as e:  # disk full, permission lost mid-run: the path and the cause
         where = f"{e.filename}: " if e.filename else ""
-        print(f"error: {where}{e.strerror or e}", file=sys.stderr, flush=True)
-        # a failed checkpoint's writer threads can still report on their way out (at the
-        # interpreter's exit too): the line above stays the last thing said
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stderr.fileno())
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # before training started (a run saves on its own Ctrl-C)
         print("interrupted", file=sys.stderr)
