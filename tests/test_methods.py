@@ -13,7 +13,7 @@ import pytest
 
 from hprior_jax import presets
 from hprior_jax.agents.sac import SACConfig
-from hprior_jax.config import RunConfig
+from hprior_jax.config import FORMAT, RunConfig
 from hprior_jax.runs.build import build_engine, train
 from hprior_jax.runs.run_dir import load_run_config, prepare_run_dir
 from hprior_jax.methods import registry
@@ -50,7 +50,7 @@ def test_every_method_builds_and_records_only_its_sections(tmp_path, algo):
     cfg = _cfg(tmp_path, algo)
     spec = registry.get(algo)
     saved = json.loads(cfg.to_json())
-    assert saved["algo"] == algo and saved["format"] == 2
+    assert saved["algo"] == algo and saved["format"] == FORMAT
     sections = {k for k, v in saved.items() if isinstance(v, dict)} - {"sac"}
     assert sections == set(spec.sections)  # a SAC run records no max_feedback
     assert RunConfig.from_dict(saved) == cfg
