@@ -13,6 +13,9 @@ Choices:
   i.e. the 90% t-interval lies inside (-margin, +margin).
 - Holm's step-down correction controls the family-wise error of the contrasts named before a
   lab ran; each adjusted p is compared with α directly.
+- a share (one contrast's mean as a fraction of another's on the same seeds, e.g. of the
+  oracle's headroom) is the ratio of the two means with a paired BCa bootstrap interval
+  (10,000 resamples of the seeds, a fixed stream): a ratio has no t-interval.
 - pooling: the inverse-variance weighted mean of each dataset's mean paired difference
   (fixed effect; the datasets are replications of one contrast, not a sample of tasks).
 """
@@ -141,6 +144,23 @@ def paired_comparison(reference_by_seed: dict[int, float],
     sd = float(np.nanstd(differences, ddof=1)) if n >= 2 else NAN
     return {"n": n, "diff": diff, "diff_lo": lo, "diff_hi": hi, "p": p, "sd": sd,
             "mde80": minimum_detectable_effect(sd, n)}
+
+
+def share_ci(differences, reference, level: float = LEVEL) -> tuple[float, float, float]:
+    """(share, lo, hi): mean(differences) / mean(reference), both paired over the same seeds
+    (pairs with a NaN dropped), with a BCa bootstrap interval at `level` that resamples seeds;
+    NaN when fewer than 3 pairs are left or the reference's mean is not positive (no room to
+    take a share of)."""
+    d, r = np.asarray(differences, dtype=float), np.asarray(reference, dtype=float)
+    keep = ~(np.isnan(d) | np.isnan(r))
+    d, r = d[keep], r[keep]
+    if d.size < 3 or not r.mean() > 0:
+        return NAN, NAN, NAN
+    ratio = lambda x, y, axis=-1: x.mean(axis) / y.mean(axis)
+    ci = stats.bootstrap((d, r), ratio, paired=True, vectorized=True, n_resamples=10_000,
+                         confidence_level=level, method="BCa",
+                         random_state=np.random.default_rng(0)).confidence_interval
+    return float(d.mean() / r.mean()), float(ci.low), float(ci.high)
 
 
 def pooled_difference(comparisons: list[dict]) -> dict:

@@ -27,13 +27,14 @@ ALL = default_rules()
 quiet = dict(progress=lambda *_: None)
 
 
-def confounded(seed=0, episodes=24, length=40) -> Dataset:
+def confounded(seed=0, episodes=24, length=40, reward="half") -> Dataset:
     """The reward is 1 on the states with obs[0] > 0, else 0. Each episode has a level μ that
     shifts obs[0] (so it sets how often the episode is rewarded) and that obs[1] shows almost
     without noise: a reward of obs[1] alone explains segment returns nearly as well as the true
     one, so labels of whole segments cannot tell the two apart, and the true per-step credit
     can. A learner that reads the credit must get closer to the true reward than one that
-    cannot."""
+    cannot. `reward="sparse"`: 1 only where obs[0] > 1.5 (rare steps); `"level"`: μ itself on
+    every step of its episode (no per-step structure: uniform credit is the true credit)."""
     rng = np.random.default_rng(seed)
     n = episodes * length
     level = np.repeat(rng.uniform(-1.5, 1.5, episodes), length)
@@ -41,8 +42,9 @@ def confounded(seed=0, episodes=24, length=40) -> Dataset:
     obs[:, 0] += level
     obs[:, 1] = level + 0.05 * obs[:, 1]
     act = rng.uniform(-1, 1, size=(n, 2)).astype(np.float32)
-    reward = (obs[:, 0] > 0).astype(np.float32)
-    (tr_o, te_o), (tr_a, te_a), (tr_r, te_r) = split_episodes(obs, act, reward, length)
+    true = (level if reward == "level"
+            else obs[:, 0] > {"half": 0.0, "sparse": 1.5}[reward]).astype(np.float32)
+    (tr_o, te_o), (tr_a, te_a), (tr_r, te_r) = split_episodes(obs, act, true, length)
     index, label = heldout_pairs(te_r, T, 300, rng)
     return Dataset(task="confounded", segment_len=T, train_obs=tr_o, train_act=tr_a,
                    train_reward=tr_r, test_obs=te_o, test_act=te_a, test_reward=te_r,

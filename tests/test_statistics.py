@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from hprior_jax.lab.contrasts import Contrast, evaluate, pooled
-from hprior_jax.statistics import holm, pooled_difference, tost_p
+from hprior_jax.statistics import holm, pooled_difference, share_ci, tost_p
 
 
 def test_holm_by_hand():
@@ -40,6 +40,21 @@ def test_pooled_difference_weights_by_inverse_variance():
     assert out["n_datasets"] == 2
 
 
+def test_a_share_is_the_ratio_of_paired_means_with_an_interval_that_resamples_seeds():
+    rng = np.random.default_rng(1)
+    reference = rng.normal(0.2, 0.02, 10)
+    part = 0.5 * reference + rng.normal(0, 0.01, 10)
+    share, lo, hi = share_ci(part, reference)
+    assert share == pytest.approx(part.mean() / reference.mean())
+    assert lo < share < hi and 0.4 < lo and hi < 0.6
+    # a noisier part: a wider interval; no room (reference mean <= 0) or < 3 pairs: NaN
+    _, lo2, hi2 = share_ci(0.5 * reference + rng.normal(0, 0.05, 10), reference)
+    assert hi2 - lo2 > hi - lo
+    assert math.isnan(share_ci(part, -reference)[0]) and math.isnan(share_ci([1, 2], [1, 1])[0])
+    # the interval is the same on a second call (a fixed stream)
+    assert share_ci(part, reference) == (share, lo, hi)
+
+
 def test_contrasts_parse_margins():
     assert Contrast.parse("a:b") == Contrast("a", "b")
     assert Contrast.parse("a~shift:b@0.02").margin == 0.02
@@ -66,6 +81,10 @@ def test_contrasts_are_holm_corrected_and_an_equivalence_needs_its_margin():
                                                   - by_cell[("t", "ref", 10)][s]["m"]
                                                   for s in seeds]) / 2)
     assert eq["verdict"].startswith("equivalent within")
+    # a's share of top − ref: about 0 (its mean difference is 0), inside its interval
+    assert eq["share_of"] == "top − ref" and abs(eq["share"]) < 1e-9
+    assert eq["share_lo"] < eq["share"] < eq["share_hi"]
+    assert math.isnan(top["share"])  # no reference contrast, no share
     # the same two rules without a margin: at best "not detected"
     alone = evaluate(by_cell, [Contrast.parse("a:b")], ["m"])[0]
     assert alone["verdict"].startswith("not detected")

@@ -138,7 +138,8 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                              "(`hprior label --from-lab`) instead of the teacher's labels; "
                              "the dataset is the one the folder names")
     parser.add_argument("--rules", nargs="+", default=None,
-                        help=f"default: {' '.join(default_rules)}; also PRIOR's ablations "
+                        help=f"default: {' '.join(default_rules)}; also PRIOR's ablations and "
+                             "the credits learned from the labels "
                              f"({' '.join(r for r in all_rules if r not in default_rules)}); "
                              "RULE@LAMBDA gives a rule its own λ (prior@1 prior@25: a λ "
                              "sweep in one program); RULE~shift the shifted target form "

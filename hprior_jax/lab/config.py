@@ -12,6 +12,12 @@
                  (what is left of α without state information)
   oracle         control: each step's share of the segment's true return, r_t / Σ r (an upper
                  bound for any credit rule; the only rule that reads true rewards)
+  state_importance, pref_attention
+                 α of a credit model trained on the cell's labels each round (state
+                 importance's |w|, Preference Transformer's attention: `lab.credit_models`),
+                 recomputed for every stored pair each round (`lab.learned_credit`)
+  state_importance_positional, pref_attention_positional
+                 control: that model's mean α at each position, the same for every segment
 
 A rule may also take the shifted target form α_t·(R̂ + T·c) − c (`shifts`, RULE~shift), clip
 its targets, fit the prior on unlabelled segments too and have its own λ: ablations and a λ
@@ -27,6 +33,8 @@ import jax
 import numpy as np
 from flax import struct
 
+from hprior_jax.lab.credit_models import KINDS as CREDIT_MODELS
+from hprior_jax.lab.credit_models import CreditModelConfig
 from hprior_jax.lab.rules import OWN_PROGRAM
 from hprior_jax.networks.reward_ensemble import RewardConfig
 from hprior_jax.pbrl.preference import PreferenceConfig
@@ -34,7 +42,13 @@ from hprior_jax.pbrl.teacher import TeacherConfig
 from hprior_jax.prior import world_model as wm
 
 CREDITS = ("none", "attention", "attention_nrp", "uniform", "positional", "oracle",
-           "attention_no_own_step", "bisimulation")
+           "attention_no_own_step", "bisimulation", "state_importance",
+           "state_importance_positional", "pref_attention", "pref_attention_positional")
+# {credit: (its credit model, whether it is the model's positional control)}
+LEARNED_CREDITS = {"state_importance": ("state_importance", False),
+                   "state_importance_positional": ("state_importance", True),
+                   "pref_attention": ("pref_attention", False),
+                   "pref_attention_positional": ("pref_attention", True)}
 WORLD_MODEL_CREDITS = ("attention", "attention_nrp", "attention_no_own_step", "positional")
 NO_PRIOR = ("none", "bisimulation")  # credits whose rule trains no prior term (λ = 0)
 BISIM_STREAM = 0xB151  # folded off a round's key: the transitions leave the other draws alone
@@ -72,6 +86,7 @@ class LabConfig:
     wm_normalize_obs: bool = False  # standardised world-model inputs (an ablation)
     attention_query: str = "action"
     profile_segments: int = 256  # training segments the positional profile averages
+    credit_model: CreditModelConfig = field(default_factory=CreditModelConfig)
 
     def __post_init__(self):
         if len(self.rules) != len(self.credits) or not self.rules:
@@ -105,6 +120,13 @@ class LabConfig:
     @property
     def needs_unlabelled(self) -> bool:
         return any(self.unlabelled)
+
+    @property
+    def learned_kinds(self) -> tuple[str, ...]:
+        """The credit models the lab's rules learn (every cell trains them: rules are
+        vmapped, so a cell cannot skip what another computes)."""
+        kinds = {LEARNED_CREDITS[c][0] for c in self.credits if c in LEARNED_CREDITS}
+        return tuple(k for k in CREDIT_MODELS if k in kinds)
 
     @property
     def needs_world_model(self) -> bool:

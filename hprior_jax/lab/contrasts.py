@@ -10,7 +10,8 @@ of the named differences real?" at α over all of them.
 
 Verdicts: "A higher"/"A lower" when the Holm-adjusted p < α; "equivalent within ±m" when the
 TOST p (Holm-adjusted within the contrasts that have a margin) < α; otherwise "not detected"
-(with MDE80, what this n could have detected), never "no difference".
+(with MDE80, what this n could have detected), never "no difference". A contrast whose margin
+is another contrast's (`C:D/K`) also reports its share of C − D (`statistics.share_ci`).
 """
 from __future__ import annotations
 
@@ -75,19 +76,24 @@ def evaluate(by_cell: dict, contrasts: list[Contrast], metrics: list[str]) -> li
                 b = value(by_cell[(task, contrast.b, budget)])
                 c = paired_comparison(b, a)
                 margin = contrast.margin
+                share, share_of = (NAN, NAN, NAN), ""
                 if contrast.margin_of is not None:
                     x, y, k = contrast.margin_of
                     margin = NAN  # no reference contrast, or one <= 0: nothing to be within
                     if (task, x, budget) in by_cell and (task, y, budget) in by_cell:
-                        headroom = float(np.nanmean(_differences(
-                            value(by_cell[(task, x, budget)]),
-                            value(by_cell[(task, y, budget)])))) / k
+                        cx, cy = value(by_cell[(task, x, budget)]), value(by_cell[(task, y, budget)])
+                        headroom = float(np.nanmean(_differences(cx, cy))) / k
                         margin = headroom if headroom > 0 else NAN
+                        seeds = sorted(set(a) & set(b) & set(cx) & set(cy))
+                        share_of = f"{x} − {y}"
+                        share = statistics.share_ci([a[s] - b[s] for s in seeds],
+                                                    [cx[s] - cy[s] for s in seeds])
                 tost = tost_p(_differences(a, b), margin) if margin is not None else NAN
                 family.append({"contrast": contrast.name, "task": task, "metric": metric,
                                "budget": budget, **c,
                                "margin": NAN if margin is None else margin,
-                               "tost_p": tost})
+                               "tost_p": tost, "share_of": share_of, "share": share[0], "share_lo": share[1],
+                               "share_hi": share[2]})
         for key, adjusted in (("p", "p_holm"), ("tost_p", "tost_p_holm")):
             for entry, p in zip(family, holm([e[key] for e in family])):
                 entry[adjusted] = p

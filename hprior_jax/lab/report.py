@@ -272,6 +272,12 @@ def _contrasts_markdown(results: list[dict], pools: list[dict]) -> list[str]:
                          f"[{e['diff_lo']:.3f}, {e['diff_hi']:.3f}] | {e['p']:.3g} | "
                          f"{e['p_holm']:.3g} | {margin} | {tost} | {e['verdict']} |")
         lines.append("")
+        lines += [f"- {e['contrast']} at {e['budget']} labels as a share of {e['share_of']}: "
+                  f"{e['share']:+.2f} [{e['share_lo']:.2f}, {e['share_hi']:.2f}] "
+                  "(ratio of means, BCa bootstrap over seeds)"
+                  for e in entries if math.isfinite(e.get("share", NAN))]
+        if lines[-1] != "":
+            lines.append("")
     if pools:
         lines += ["### Pooled over tasks (fixed effect, inverse-variance weights)", "",
                   "| contrast | metric | labels | tasks | difference [95% CI] | p |",

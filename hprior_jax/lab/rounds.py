@@ -1,5 +1,7 @@
 """One lab round of one cell (seed, rule): query -> teacher -> credit of the new pairs ->
-reward update on every stored pair, as the RL loop's feedback rounds do on fixed episodes."""
+reward update on every stored pair, as the RL loop's feedback rounds do on fixed episodes. A
+learned credit (`lab.learned_credit`) trains its model on the stored pairs first and credits
+every stored pair afresh."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,7 +13,9 @@ import optax
 from flax import struct
 
 from hprior_jax.buffers import preferences
-from hprior_jax.lab.config import (BISIM_STREAM, CREDITS, Episodes, GivenLabels, RuleArgs)
+from hprior_jax.lab.config import (BISIM_STREAM, CREDITS, LEARNED_CREDITS, Episodes, GivenLabels,
+                                   RuleArgs)
+from hprior_jax.lab.learned_credit import learned_credits
 from hprior_jax.lab.seed_world_model import SeedContext
 from hprior_jax.networks.reward_ensemble import init_reward_ensemble, mean_reward
 from hprior_jax.pbrl.bisim import BisimTransitions, bisim_term
@@ -24,6 +28,8 @@ from hprior_jax.prior.diagnostics import unreachable_targets
 from hprior_jax.prior.loss import PairCredit, nrp_alpha, prior_term, rvar_alpha
 from hprior_jax.prior.unlabelled import STREAM as UNLABELLED_STREAM
 from hprior_jax.prior.unlabelled import UnlabelledSegments, rows_of_pool, unlabelled_prior_term
+
+LEARNED_STREAM = 0x1EA2  # folded off a round's key: the credit models leave the other draws alone
 
 
 @struct.dataclass
@@ -65,7 +71,9 @@ class CellRounds:
         options = {"none": uniform, "attention": attention,
                    "attention_nrp": nrp_alpha(attention), "uniform": uniform,
                    "positional": jnp.broadcast_to(ctx.profile, true_r.shape), "oracle": oracle,
-                   "attention_no_own_step": no_own_step, "bisimulation": uniform}
+                   "attention_no_own_step": no_own_step, "bisimulation": uniform,
+                   # placeholders: a learned credit credits every stored pair each round
+                   **{c: uniform for c in LEARNED_CREDITS}}
         return jnp.stack([options[c] for c in CREDITS])[credit_id]
 
     def round(self, cell: Cell, ctx: SeedContext, rule: RuleArgs, num_queries, first,
@@ -98,6 +106,10 @@ class CellRounds:
                             alpha2=preferences.put_rows(cell.credit.alpha2, alpha[queries:], slot))
         prefs = preferences.add(cell.prefs, preferences.PreferenceBatch(
             pairs.obs1, pairs.act1, pairs.obs2, pairs.act2, out.labels), keep)
+        learned = {}
+        if cfg.learned_kinds:  # every rule trains them (used by the learned rules only)
+            credit, learned = self.learned_credit(
+                jax.random.fold_in(k_train, LEARNED_STREAM), train, prefs, credit, rule.credit)
         terms = (prior_term(rule.lam, credit, "raw", rule.clip, rule.shift),)
         if cfg.needs_unlabelled:  # every rule computes it (weight 0 but its rule's)
             terms += (unlabelled_prior_term(
@@ -123,12 +135,28 @@ class CellRounds:
                    # of the rule's own credit (uniform for pebble, which does not use it)
                    "target_out_of_range": unreachable_targets(params, prefs, credit,
                                                               cfg.reward, shift=rule.shift)}
+        metrics |= learned
         if cfg.needs_unlabelled:
             metrics |= {"unlabelled_prior_loss": m["prior/unlabelled_loss"]}
         if cfg.needs_bisim:
             metrics |= {"bisim_loss": m["bisim/loss"],
                         "bisim_grad_ratio": m["bisim/loss/grad_ratio"]}
         return Cell(reward=params, opt=opt, prefs=prefs, credit=credit, key=key), metrics
+
+    def learned_credit(self, key, train: Episodes, prefs, credit: PairCredit, credit_id):
+        """Every stored pair's credit under the rule `credit_id` when it is a learned one (a
+        credit model trained now on `prefs`, or its positional profile), else `credit` as it
+        is; and each credit model's BT accuracy on its last step (`credit_acc/KIND`)."""
+        options, accuracy = {}, {}
+        for i, kind in enumerate(self.cfg.learned_kinds):
+            pairs, profile, accuracy[f"credit_acc/{kind}"] = learned_credits(
+                kind, self.cfg.credit_model, jax.random.fold_in(key, i), prefs, train.obs,
+                train.act, self.cfg.profile_segments)
+            options |= {kind: pairs, f"{kind}_positional": profile}
+        for name, option in options.items():
+            pick = credit_id == CREDITS.index(name)
+            credit = jax.tree.map(lambda a, b: jnp.where(pick, a, b), option, credit)
+        return credit, accuracy
 
     def unlabelled_segments(self, key, ctx: SeedContext, train: Episodes, capacity: int,
                             credit_id) -> UnlabelledSegments:

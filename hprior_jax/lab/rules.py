@@ -24,6 +24,10 @@ METHODS = {"pebble": "none", "prior": "attention", "prior_nrp": "attention_nrp",
 # episode_length) -> (cell, metrics)`; lab.learn vmaps or maps it over seeds.
 OWN_PROGRAMS = {"surf": "surf_round"}
 CONTROLS = {"positional": "positional", "oracle": "oracle"}  # lab rules that are no method
+# lab rules asked for by name, no method (yet): credit learned from the labels instead of from
+# dynamics (lab.credit_models), each with its positional control
+LEARNED = {name: name for name in ("state_importance", "state_importance_positional",
+                                   "pref_attention", "pref_attention_positional")}
 # lab rules asked for by name: (credit, targets clipped, prior also on unlabelled segments).
 # The prior_* ones are `--algo prior` with a flag; the other two are prior_unlabelled's
 # controls, the same unlabelled segments under uniform credit (`--algo rvar
@@ -37,14 +41,15 @@ ABLATIONS = {"prior_no_own_step": ("attention_no_own_step", False, False),  # ex
 
 def rules() -> dict[str, str]:
     """{rule: credit}: the methods that are lab rules, in the registry's order, then the
-    lab's controls, then PRIOR's ablations."""
+    lab's controls, then PRIOR's ablations, then the learned credits."""
     methods = {n: METHODS[n] for n in registry.names() if n in METHODS}
-    return {**methods, **CONTROLS, **{n: credit for n, (credit, *_) in ABLATIONS.items()}}
+    return {**methods, **CONTROLS, **{n: credit for n, (credit, *_) in ABLATIONS.items()},
+            **LEARNED}
 
 
 def default_rules() -> list[str]:
-    """The default sweep: every rule but the ablations."""
-    return [r for r in rules() if r not in ABLATIONS]
+    """The default sweep: every rule but the ablations and the learned credits."""
+    return [r for r in rules() if r not in ABLATIONS and r not in LEARNED]
 
 
 def own_rule(name: str, rl):
