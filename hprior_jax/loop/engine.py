@@ -23,7 +23,7 @@ from hprior_jax.evaluate import evaluate_policy
 from hprior_jax.loop import devices as seed_devices
 from hprior_jax.loop.state import RunState
 from hprior_jax.loop.programs import ProgramCache, abstract, shapes, timed
-from hprior_jax.setup_jax import compiler_options
+from hprior_jax.setup_jax import compiler_options, program_options
 
 
 STARTS = "episode_starts"  # the program of the states new episodes begin from
@@ -258,15 +258,17 @@ class Engine(ProgramCache):
                 length = int(name.split("/")[1])
                 self.compile_ahead(name, *self._chunk_program(rs, step, length, name))
 
-    def per_seed(self, fn, in_axes=(0,), donate_argnums=()):
+    def per_seed(self, fn, in_axes=(0,), donate_argnums=(), physics_free=False):
         """`fn` of one seed as a jitted program over every seed, split over the mesh:
-        `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share."""
-        return self.over_seed_axis(jax.vmap(fn, in_axes=in_axes), in_axes, donate_argnums)
+        `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share.
+        `physics_free`: `fn` steps no MJX (`setup_jax.program_options`)."""
+        return self.over_seed_axis(jax.vmap(fn, in_axes=in_axes), in_axes, donate_argnums,
+                                   physics_free)
 
-    def over_seed_axis(self, fn, in_axes=(0,), donate_argnums=()):
+    def over_seed_axis(self, fn, in_axes=(0,), donate_argnums=(), physics_free=False):
         """As `per_seed` for `fn` that maps over the seed axis itself (e.g. `lax.map`)."""
         return seed_devices.over_seeds(self.mesh, fn, in_axes, donate_argnums,
-                                       self.compiler_options)
+                                       program_options(self.compiler_options, physics_free))
 
     def place(self, tree):
         """`tree` (leading seed axis) split over the mesh as the compiled programs expect."""

@@ -46,9 +46,11 @@ class Kit(Protocol):
     def compile(self, name: str, fn, *args):
         """`fn.lower(*args).compile()` once per name, its compile time measured apart."""
 
-    def per_seed(self, fn, in_axes=(0,), donate_argnums=()):
+    def per_seed(self, fn, in_axes=(0,), donate_argnums=(), physics_free=False):
         """`fn` of one seed as one jitted program over every seed (split over the devices):
-        `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share."""
+        `in_axes[i]` is 0 for an argument with the seed axis, None for one all seeds share.
+        `physics_free`: `fn` steps no MJX, so on CPU it may compile with XLA's default fusion
+        emitters (`setup_jax.PHYSICS_FREE`)."""
 
     def place(self, tree):
         """Host arrays with a leading seed axis, split over the devices as programs expect."""

@@ -278,7 +278,7 @@ class WorldModelPrior(Extension):
     def _world_model_program(self, pretrain: bool):
         return ("world_model/pretrain" if pretrain else "world_model/update",
                 self.kit.per_seed(partial(self.train_world_model, pretrain=pretrain),
-                                  donate_argnums=0))
+                                  donate_argnums=0, physics_free=True))
 
 
 # the world model at the paper's size (TWM: 10 layers x 256) costs seconds per update on a CPU;
