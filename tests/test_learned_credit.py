@@ -160,7 +160,7 @@ def toy_gains(reward: str, against: dict[str, str], metric="episode_pearson", se
 def test_state_importance_beats_uniform_credit_where_the_reward_is_sparse():
     """Reward on rare steps (obs[0] > 1.5) under the level confound: state importance's L1
     penalty suits it. Measured (6 seeds, 50 labels): state importance − RVAR +0.112 (sd
-    0.068), its positional control − RVAR −0.043 (0.051); oracle~shift − RVAR +0.634."""
+    0.068); perfect credit (oracle~shift) − RVAR +0.634."""
     gains = toy_gains("sparse", {"state_importance": "rvar",
                                  "state_importance_positional": "rvar"})
     learned = gains["state_importance"]
