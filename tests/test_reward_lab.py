@@ -92,7 +92,9 @@ def test_rules_are_the_registered_reward_learners_and_the_controls():
     assert rules()["prior"] == "attention" and rules()["prior_nrp"] == "attention_nrp"
     assert registry.REFERENCE not in ALL  # SAC learns no reward
     assert list(rules()) == ALL + ["prior_no_own_step", "prior_clipped", "prior_unlabelled",
-                                   "rvar_unlabelled", "positional_unlabelled"]  # by name
+                                   "rvar_unlabelled", "positional_unlabelled",  # by name
+                                   "state_importance", "state_importance_positional",
+                                   "pref_attention", "pref_attention_positional"]
     assert rules()["bisim"] == "bisimulation"
 
 

@@ -139,11 +139,10 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
                              "the dataset is the one the folder names")
     parser.add_argument("--rules", nargs="+", default=None,
                         help=f"default: {' '.join(default_rules)}; also PRIOR's ablations and "
-                             "the credits learned from the labels "
+                             "the credits learned from labels "
                              f"({' '.join(r for r in all_rules if r not in default_rules)}); "
-                             "RULE@LAMBDA gives a rule its own λ (prior@1 prior@25: a λ "
-                             "sweep in one program); RULE~shift the shifted target form "
-                             "α·(R̂ + T) − 1 (oracle~shift, prior~shift)")
+                             "RULE@LAMBDA gives a rule its own λ (prior@1 prior@25: a λ sweep in "
+                             "one program); RULE~shift the target α·(R̂ + T) − 1 (oracle~shift)")
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--first-seed", type=int, default=0,
                         help="the lab's seeds are FIRST_SEED .. FIRST_SEED + SEEDS - 1: a "
@@ -176,7 +175,7 @@ def _parser(datasets, default_rules: list[str], all_rules) -> argparse.ArgumentP
     parser.add_argument("--contrasts", nargs="+", default=(), metavar="A:B[@MARGIN]",
                         help="pre-registered contrasts A − B, reported first with Holm's "
                              "correction (MARGIN: a number or C:D/K, adds a TOST equivalence "
-                             "test), e.g. oracle~shift:rvar "
+                             "test; C:D/K also A − B's share of C − D), e.g. oracle~shift:rvar "
                              "prior~shift:positional~shift@oracle~shift:rvar/2")
     parser.add_argument("--out", default=None, help="default runs/reward_lab/<task>")
     parser.add_argument("--resume", action="store_true",
