@@ -37,25 +37,10 @@ def world_model_case(size: str, n_seeds: int):
 
 
 def reward_case(n_pairs: int, n_seeds: int):
-    import jax
+    from benchmarks.updates.reward_update import epoch_program
 
-    from benchmarks.updates.reward_update import HIDDEN, MEMBERS, SIZES, _random_store
-    from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble
-    from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_epoch
-
-    obs, act = SIZES["dmc"]
-    rcfg, pcfg = RewardConfig(hidden_sizes=HIDDEN, ensemble_size=MEMBERS), PreferenceConfig()
-    tx = make_optimizer(pcfg)
-
-    def init(key):
-        params = init_reward_ensemble(key, obs, act, rcfg)
-        return params, tx.init(params), _random_store(jax.random.fold_in(key, 1), n_pairs, obs, act)
-
-    def epoch(params, opt_state, store, key):
-        return train_epoch(params, opt_state, store, key, tx=tx, reward_cfg=rcfg, cfg=pcfg)
-
-    keys = jax.random.split(jax.random.key(0), n_seeds)
-    return jax.jit(jax.vmap(epoch)), (*jax.jit(jax.vmap(init))(keys), keys)
+    program, args, _ = epoch_program("dmc", n_seeds, n_pairs)
+    return program, args
 
 
 def compare(program, args, repeats: int) -> dict:

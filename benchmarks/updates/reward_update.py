@@ -48,9 +48,11 @@ def _random_store(key, n_pairs: int, obs: int, act: int):
         ptr=jnp.int32(0), count=jnp.int32(n_pairs))
 
 
-def jax_step_ms(size: str, n_seeds: int, n_pairs: int, repeats: int) -> dict:
+def epoch_program(size: str, n_seeds: int, n_pairs: int):
+    """One epoch of `train_epoch` over `n_pairs` random stored pairs, `jit(vmap(...))` over
+    `n_seeds` seeds, not yet compiled. -> (program, (params, opt_state, store, keys), epoch of
+    one seed)."""
     import jax
-    import jax.numpy as jnp
 
     from hprior_jax.networks.reward_ensemble import RewardConfig, init_reward_ensemble
     from hprior_jax.pbrl.preference import PreferenceConfig, make_optimizer, train_epoch
@@ -67,9 +69,17 @@ def jax_step_ms(size: str, n_seeds: int, n_pairs: int, repeats: int) -> dict:
         return train_epoch(params, opt_state, store, key, tx=tx, reward_cfg=rcfg, cfg=pcfg)
 
     keys = jax.random.split(jax.random.key(0), n_seeds)
-    params, opt_state, store = jax.jit(jax.vmap(init))(keys)
+    return jax.jit(jax.vmap(epoch)), (*jax.jit(jax.vmap(init))(keys), keys), epoch
+
+
+def jax_step_ms(size: str, n_seeds: int, n_pairs: int, repeats: int) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    program, (params, opt_state, store, keys), epoch = epoch_program(size, n_seeds, n_pairs)
+    obs, act = SIZES[size]
     t0 = time.perf_counter()
-    fn = jax.jit(jax.vmap(epoch)).lower(params, opt_state, store, keys).compile()
+    fn = program.lower(params, opt_state, store, keys).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(fn(params, opt_state, store, keys))
     best = best_seconds(lambda: fn(params, opt_state, store, keys), repeats,
