@@ -15,7 +15,8 @@ Choices:
   lab ran; each adjusted p is compared with α directly.
 - a share (one contrast's mean as a fraction of another's on the same seeds, e.g. of the
   oracle's headroom) is the ratio of the two means with a paired BCa bootstrap interval
-  (10,000 resamples of the seeds, a fixed stream): a ratio has no t-interval.
+  (10,000 resamples of the seeds, a fixed stream): a ratio has no t-interval. Only where the
+  other contrast's t-interval lies above 0.
 - pooling: the inverse-variance weighted mean of each dataset's mean paired difference
   (fixed effect; the datasets are replications of one contrast, not a sample of tasks).
 """
@@ -149,12 +150,12 @@ def paired_comparison(reference_by_seed: dict[int, float],
 def share_ci(differences, reference, level: float = LEVEL) -> tuple[float, float, float]:
     """(share, lo, hi): mean(differences) / mean(reference), both paired over the same seeds
     (pairs with a NaN dropped), with a BCa bootstrap interval at `level` that resamples seeds;
-    NaN when fewer than 3 pairs are left or the reference's mean is not positive (no room to
-    take a share of)."""
+    NaN when fewer than 3 pairs are left or the reference's 95% t-interval does not lie above
+    0 (no room shown to take a share of: a share of a near-zero mean is any number)."""
     d, r = np.asarray(differences, dtype=float), np.asarray(reference, dtype=float)
     keep = ~(np.isnan(d) | np.isnan(r))
     d, r = d[keep], r[keep]
-    if d.size < 3 or not r.mean() > 0:
+    if d.size < 3 or not mean_ci(r)[1] > 0:
         return NAN, NAN, NAN
     ratio = lambda x, y, axis=-1: x.mean(axis) / y.mean(axis)
     ci = stats.bootstrap((d, r), ratio, paired=True, vectorized=True, n_resamples=10_000,

@@ -51,6 +51,9 @@ def test_a_share_is_the_ratio_of_paired_means_with_an_interval_that_resamples_se
     _, lo2, hi2 = share_ci(0.5 * reference + rng.normal(0, 0.05, 10), reference)
     assert hi2 - lo2 > hi - lo
     assert math.isnan(share_ci(part, -reference)[0]) and math.isnan(share_ci([1, 2], [1, 1])[0])
+    # a reference whose interval reaches 0 (mean > 0, but not shown to be): no share either
+    noisy = np.tile([0.11, -0.09], 5)  # mean +0.01, its interval about ±0.07
+    assert math.isnan(share_ci(part, noisy)[0])
     # the interval is the same on a second call (a fixed stream)
     assert share_ci(part, reference) == (share, lo, hi)
 
