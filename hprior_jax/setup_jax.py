@@ -6,6 +6,8 @@ from pathlib import Path
 
 import jax
 
+from tasks._xla_flags import FLAG as FUSION_FLAG
+
 # programs that compile in less time are not written to the cache (a test lowers it)
 MIN_COMPILE_SECS = 1.0
 DEFAULT_CACHE = Path(os.environ.get("HPRIOR_JAX_CACHE", Path.home() / ".cache" / "hprior_jax" / "xla"))
@@ -50,6 +52,6 @@ def program_options(options: dict, physics_free: bool) -> dict:
     within 2e-6; `python -m benchmarks.updates.fusion_emitters`)."""
     # only where the process turned them off (jaxlibs from 0.11 have no such flag)
     if (physics_free and jax.default_backend() == "cpu"
-            and "xla_cpu_use_fusion_emitters=false" in os.environ.get("XLA_FLAGS", "")):
+            and FUSION_FLAG in os.environ.get("XLA_FLAGS", "")):
         return {**options, **PHYSICS_FREE}
     return options

@@ -81,7 +81,8 @@ def evaluate(by_cell: dict, contrasts: list[Contrast], metrics: list[str]) -> li
                     x, y, k = contrast.margin_of
                     margin = NAN  # no reference contrast, or one <= 0: nothing to be within
                     if (task, x, budget) in by_cell and (task, y, budget) in by_cell:
-                        cx, cy = value(by_cell[(task, x, budget)]), value(by_cell[(task, y, budget)])
+                        cx = value(by_cell[(task, x, budget)])
+                        cy = value(by_cell[(task, y, budget)])
                         headroom = float(np.nanmean(_differences(cx, cy))) / k
                         margin = headroom if headroom > 0 else NAN
                         seeds = sorted(set(a) & set(b) & set(cx) & set(cy))
@@ -92,8 +93,8 @@ def evaluate(by_cell: dict, contrasts: list[Contrast], metrics: list[str]) -> li
                 family.append({"contrast": contrast.name, "task": task, "metric": metric,
                                "budget": budget, **c,
                                "margin": NAN if margin is None else margin,
-                               "tost_p": tost, "share_of": share_of, "share": share[0], "share_lo": share[1],
-                               "share_hi": share[2]})
+                               "tost_p": tost, "share_of": share_of,
+                               **dict(zip(("share", "share_lo", "share_hi"), share))})
         for key, adjusted in (("p", "p_holm"), ("tost_p", "tost_p_holm")):
             for entry, p in zip(family, holm([e[key] for e in family])):
                 entry[adjusted] = p
